@@ -1,0 +1,1 @@
+"""Camera conventions and conversions (torch)."""

@@ -1,0 +1,148 @@
+"""Binning: which Gaussians each tile composites, in depth order (Dr.Jit, not differentiable).
+
+The reference (3DGS ``getRect``/``duplicateWithKeys``) considers a Gaussian at a pixel only if
+the square of half-width ``radius`` around its centre overlaps the pixel's 16x16 tile. Smaller
+tiles refine that set without changing the image: a Gaussian stays in a T x T tile when its
+16x16 parent tile is in the reference rectangle and, with ``opacity_cull``, when the ellipse on
+which it can reach ``alpha >= 1/255`` overlaps the tile (elsewhere the reference skips it by its
+own ``alpha < 1/255`` rule). Pairs are generated in global depth order and stably bucket-sorted by
+tile, so each tile's list is depth-sorted with ties in index order, as the reference's radix sort.
+"""
+
+from dataclasses import dataclass
+
+import drjit as dr
+
+from usplat_dr.render.project import Projected
+from usplat_dr.render.settings import REFERENCE_TILE
+
+#: Compositing skips a Gaussian at a pixel where its alpha is below this (3DGS).
+ALPHA_MIN = 1.0 / 255.0
+#: Opacity culling is used only for conics with cond(2D covariance) = a c / det below this: the
+#: float32 power's rounding error grows with the condition number, and the box margin below is
+#: sized for errors up to ~1e-4 relative (3 eps x cond).
+MAX_CULL_CONDITION = 1.0e3
+
+
+@dataclass
+class Bins:
+    """Per-tile lists. ``pair_gid`` (``UInt32``, one lane per (tile, Gaussian) pair, tile-major,
+    depth order within a tile): Gaussian index. ``tile_start``, ``tile_end`` (``UInt32``, one lane
+    per tile of every image): the range of each tile in ``pair_gid``. ``num_pairs`` (``int``).
+    """
+
+    pair_gid: object
+    tile_start: object
+    tile_end: object
+    num_pairs: int
+
+
+def tile_rects(p: Projected, tile_size: int, opacity_cull: bool, width, height, grid_x, grid_y):
+    """Tile rectangle ``[x0, x1) x [y0, y1)`` (``UInt32``, in tiles of ``tile_size``) and pair
+    count (``UInt32``) of every Gaussian.
+
+    Parameter ``width, height`` (``Float``, opaque scalars): image size in pixels. ``grid_x,
+    grid_y`` (``Float``, opaque scalars): number of ``tile_size`` tiles across and down.
+    """
+    UInt32 = dr.uint32_array_t(type(p.u))
+    u, v = dr.detach(p.u), dr.detach(p.v)
+    valid = dr.detach(p.valid)
+    # The reference's pixel frame: centre p = u - 0.5 against integer pixel indices.
+    px = dr.select(valid, u - 0.5, 0.0)
+    py = dr.select(valid, v - 0.5, 0.0)
+    r = dr.select(valid, p.radius, 0.0)
+
+    # ---- Reference rectangle on the 16x16 grid (getRect), clamped to the grid ----
+    # Clamping before floor equals the reference's int-truncate-then-clamp, and keeps huge or
+    # infinite coordinates out of the float -> int conversion.
+    ref = float(REFERENCE_TILE)
+    grid16_x = dr.ceil(width / ref)
+    grid16_y = dr.ceil(height / ref)
+    x0 = dr.floor(dr.clip((px - r) / ref, 0.0, grid16_x))
+    x1 = dr.floor(dr.clip((px + r + (ref - 1.0)) / ref, 0.0, grid16_x))
+    y0 = dr.floor(dr.clip((py - r) / ref, 0.0, grid16_y))
+    y1 = dr.floor(dr.clip((py + r + (ref - 1.0)) / ref, 0.0, grid16_y))
+    valid &= (x1 > x0) & (y1 > y0)
+
+    # ---- Refine to tile_size tiles (tile_size divides 16) ----
+    sub = float(REFERENCE_TILE // tile_size)
+    x0, y0 = x0 * sub, y0 * sub
+    x1 = dr.minimum(x1 * sub, grid_x)
+    y1 = dr.minimum(y1 * sub, grid_y)
+
+    if opacity_cull:
+        o = dr.detach(p.opacity)
+        # alpha = min(0.99, o G) <= o: below 1/255 everywhere when o is.
+        valid &= o >= ALPHA_MIN
+        a, b, c = p.cov2d
+        well_conditioned = a * c <= MAX_CULL_CONDITION * (a * c - b * b)
+        # o exp(power) >= 1/255  <=>  d^T Sigma^-1 d <= 2 ln(255 o): an ellipse whose bounding box
+        # has half-extents sqrt(2 ln(255 o) Sigma_xx), sqrt(2 ln(255 o) Sigma_yy). Widened for
+        # float32 rounding: +1e-4 on the log covers absolute errors in power/exp/o x exp, 1 %
+        # covers relative errors of the power (<= ~3e-4 at the condition bound), +0.01 px the rest.
+        reach = 2.0 * (dr.log(dr.maximum(o, ALPHA_MIN) * 255.0) + 1e-4)
+        ext_x = dr.sqrt(reach * a) * 1.01 + 0.01
+        ext_y = dr.sqrt(reach * c) * 1.01 + 0.01
+        ts = float(tile_size)
+        bx0 = dr.floor(dr.clip((px - ext_x) / ts, 0.0, grid_x))
+        bx1 = dr.floor(dr.clip((px + ext_x) / ts + 1.0, 0.0, grid_x))
+        by0 = dr.floor(dr.clip((py - ext_y) / ts, 0.0, grid_y))
+        by1 = dr.floor(dr.clip((py + ext_y) / ts + 1.0, 0.0, grid_y))
+        x0 = dr.select(well_conditioned, dr.maximum(x0, bx0), x0)
+        x1 = dr.select(well_conditioned, dr.minimum(x1, bx1), x1)
+        y0 = dr.select(well_conditioned, dr.maximum(y0, by0), y0)
+        y1 = dr.select(well_conditioned, dr.minimum(y1, by1), y1)
+
+    valid &= (x1 > x0) & (y1 > y0)
+    x0, x1, y0, y1 = (UInt32(q) for q in (x0, x1, y0, y1))
+    count = dr.select(valid, (x1 - x0) * (y1 - y0), 0)
+    return x0, x1, y0, y1, count
+
+
+def bin_gaussians(x0, x1, y0, y1, count, depth, tile_base, grid_x, num_tiles: int) -> Bins:
+    """Expand Gaussians into (tile, Gaussian) pairs and sort them by tile, then depth.
+
+    Parameter ``x0, x1, y0, y1, count`` (``UInt32``, one lane per Gaussian): from ``tile_rects``.
+    Parameter ``depth`` (``Float``): sort key (camera z). ``tile_base`` (``UInt32``): index of the
+    Gaussian's image's first tile. ``grid_x`` (``UInt32``, opaque scalar): tiles across.
+    ``num_tiles`` (``int``): tiles over all images of the batch.
+
+    One host read (the number of pairs, to size the pair arrays).
+    """
+    UInt32 = type(count)
+    n = dr.width(count)
+    # ---- Global depth order (stable radix sort; culled Gaussians have count 0) ----
+    perm = dr.argsort(dr.select(count > 0, depth, dr.inf))
+    count_sorted = dr.gather(UInt32, count, perm)
+    end = dr.prefix_reduce(dr.ReduceOp.Add, count_sorted, exclusive=False)
+    num_pairs = int(end[n - 1])
+
+    tile_count = dr.zeros(UInt32, num_tiles)
+    if num_pairs == 0:
+        return Bins(pair_gid=dr.zeros(UInt32, 1), tile_start=tile_count, tile_end=tile_count,
+                    num_pairs=0)
+    begin = end - count_sorted
+
+    # ---- Pair owners: scatter each Gaussian's sorted position at its first pair, max-scan ----
+    owner = dr.zeros(UInt32, num_pairs)
+    dr.scatter(owner, dr.arange(UInt32, n), begin, active=count_sorted > 0)
+    owner = dr.prefix_reduce(dr.ReduceOp.Max, owner, exclusive=False)
+    gid = dr.gather(UInt32, perm, owner)
+
+    # ---- Tile of each pair (row-major within the Gaussian's rectangle) ----
+    k = dr.arange(UInt32, num_pairs) - dr.gather(UInt32, begin, owner)
+    gx0 = dr.gather(UInt32, x0, gid)
+    gy0 = dr.gather(UInt32, y0, gid)
+    # Guarded divisor: masked tail lanes of a packet may read 0 and trap (notes, pitfall 2).
+    w = dr.maximum(dr.gather(UInt32, x1, gid) - gx0, 1)
+    row = k // w
+    tile = dr.gather(UInt32, tile_base, gid) + (gy0 + row) * grid_x + gx0 + (k - row * w)
+
+    # ---- Stable bucket sort by tile keeps the depth order within each tile ----
+    buckets = 1 << max(num_tiles - 1, 1).bit_length()
+    perm_tile = dr.detail.block_mkperm(tile, num_pairs, buckets)
+    pair_gid = dr.gather(UInt32, gid, perm_tile)
+    dr.scatter_reduce(dr.ReduceOp.Add, tile_count, UInt32(1), tile)
+    tile_end = dr.prefix_reduce(dr.ReduceOp.Add, tile_count, exclusive=False)
+    tile_start = tile_end - tile_count
+    return Bins(pair_gid=pair_gid, tile_start=tile_start, tile_end=tile_end, num_pairs=num_pairs)
