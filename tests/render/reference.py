@@ -93,9 +93,13 @@ def project_ref(c2w, K, near, W, H, means, covs):
 
 
 def render_ref(extrinsics, intrinsics, near, far, image_shape, background, means, covs, sh,
-               opacities, tile_cut: bool = True, basis: str = "3dgs"):
+               opacities, tile_cut: bool = True, basis: str = "3dgs",
+               clamp_gradient: str = "exact"):
     """Dense reference render of a batch. Inputs as ``usplat_dr.render.rasterize`` (any float
-    dtype; use float64). Returns (color [B,3,H,W], alpha [B,H,W], depth [B,H,W])."""
+    dtype; use float64). Returns (color [B,3,H,W], alpha [B,H,W], depth [B,H,W]).
+
+    ``clamp_gradient="reference"`` passes the gradient straight through the 0.99 clamp, as the
+    3DGS backward does; ``"exact"`` differentiates the clamp (zero where it is active)."""
     H, W = image_shape
     colors, alphas, depths = [], [], []
     degree = min(int(math.isqrt(sh.shape[-1])) - 1, 3)
@@ -111,6 +115,8 @@ def render_ref(extrinsics, intrinsics, near, far, image_shape, background, means
         nc = (degree + 1) ** 2
         rgb = (sh[bi][..., :nc] * basis_fn(d, degree)[:, None, :]).sum(-1) + 0.5
         rgb = torch.clamp(rgb, min=0.0)  # [G, 3]
+        # A culled Gaussian's colour is never used; at the camera centre it is undefined (NaN).
+        rgb = torch.where(valid[:, None], rgb, torch.zeros_like(rgb))
 
         order = torch.sort(torch.where(valid, z, torch.full_like(z, math.inf)), stable=True)[1]
         u, v, conic, z, radius, valid, rgb = (q[order] for q in (u, v, conic, z, radius, valid,
@@ -120,7 +126,10 @@ def render_ref(extrinsics, intrinsics, near, far, image_shape, background, means
         dy = v[None, :] - pix_y[:, None]
         power = (-0.5 * (conic[None, :, 0] * dx * dx + conic[None, :, 2] * dy * dy)
                  - conic[None, :, 1] * dx * dy)
-        alpha = torch.clamp(opac[None, :] * torch.exp(power), max=0.99)
+        raw = opac[None, :] * torch.exp(power)
+        alpha = torch.clamp(raw, max=0.99)
+        if clamp_gradient == "reference":
+            alpha = raw + (alpha - raw).detach()
         use = valid[None, :] & (power <= 0) & (alpha >= 1.0 / 255.0)
         if tile_cut:
             px_c, py_c = u - 0.5, v - 0.5

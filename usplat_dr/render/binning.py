@@ -38,8 +38,11 @@ class Bins:
 
 
 def tile_rects(p: Projected, tile_size: int, opacity_cull: bool, width, height, grid_x, grid_y):
-    """Tile rectangle ``[x0, x1) x [y0, y1)`` (``UInt32``, in tiles of ``tile_size``) and pair
-    count (``UInt32``) of every Gaussian.
+    """Tile rectangle ``[x0, x1) x [y0, y1)`` (``UInt32``, in tiles of ``tile_size``), pair
+    count (``UInt32``) and cull bound (``Float``) of every Gaussian.
+
+    The cull bound ``q_max`` is such that the Gaussian can reach ``alpha >= 1/255`` only where
+    ``d^T conic d <= q_max`` (``inf`` when opacity culling is off or unsafe for this Gaussian).
 
     Parameter ``width, height`` (``Float``, opaque scalars): image size in pixels. ``grid_x,
     grid_y`` (``Float``, opaque scalars): number of ``tile_size`` tiles across and down.
@@ -70,6 +73,7 @@ def tile_rects(p: Projected, tile_size: int, opacity_cull: bool, width, height, 
     x1 = dr.minimum(x1 * sub, grid_x)
     y1 = dr.minimum(y1 * sub, grid_y)
 
+    q_max = dr.full(type(u), dr.inf, dr.width(u))
     if opacity_cull:
         o = dr.detach(p.opacity)
         # alpha = min(0.99, o G) <= o: below 1/255 everywhere when o is.
@@ -92,27 +96,51 @@ def tile_rects(p: Projected, tile_size: int, opacity_cull: bool, width, height, 
         x1 = dr.select(well_conditioned, dr.minimum(x1, bx1), x1)
         y0 = dr.select(well_conditioned, dr.maximum(y0, by0), y0)
         y1 = dr.select(well_conditioned, dr.minimum(y1, by1), y1)
+        q_max = dr.select(well_conditioned, reach * 1.02, dr.inf)
 
     valid &= (x1 > x0) & (y1 > y0)
     x0, x1, y0, y1 = (UInt32(q) for q in (x0, x1, y0, y1))
     count = dr.select(valid, (x1 - x0) * (y1 - y0), 0)
-    return x0, x1, y0, y1, count
+    return x0, x1, y0, y1, count, q_max
 
 
-def bin_gaussians(x0, x1, y0, y1, count, depth, tile_base, grid_x, num_tiles: int) -> Bins:
+def _min_quadratic_over_box(ca, cb, cc, dx_lo, dx_hi, dy_lo, dy_hi):
+    """min of q(d) = ca dx^2 + 2 cb dx dy + cc dy^2 (positive definite) over a box of d.
+
+    Zero when the box holds d = 0; otherwise the minimum lies on an edge, where q is a 1D
+    quadratic minimised at the clamped stationary point.
+    """
+    def q(dx, dy):
+        return dr.fma(ca, dx * dx, dr.fma(2.0 * cb, dx * dy, cc * (dy * dy)))
+
+    inv_ca, inv_cc = dr.rcp(ca), dr.rcp(cc)
+    best = dr.inf
+    for dx in (dx_lo, dx_hi):
+        best = dr.minimum(best, q(dx, dr.clip(-cb * dx * inv_cc, dy_lo, dy_hi)))
+    for dy in (dy_lo, dy_hi):
+        best = dr.minimum(best, q(dr.clip(-cb * dy * inv_ca, dx_lo, dx_hi), dy))
+    inside = (dx_lo <= 0) & (dx_hi >= 0) & (dy_lo <= 0) & (dy_hi >= 0)
+    return dr.select(inside, 0.0, best)
+
+
+def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, tile_base,
+                  grid_x, num_tiles: int) -> Bins:
     """Expand Gaussians into (tile, Gaussian) pairs and sort them by tile, then depth.
 
-    Parameter ``x0, x1, y0, y1, count`` (``UInt32``, one lane per Gaussian): from ``tile_rects``.
-    Parameter ``depth`` (``Float``): sort key (camera z). ``tile_base`` (``UInt32``): index of the
-    Gaussian's image's first tile. ``grid_x`` (``UInt32``, opaque scalar): tiles across.
-    ``num_tiles`` (``int``): tiles over all images of the batch.
+    Parameter ``p`` (``Projected``): centres and conics (read detached) and depth (sort key).
+    Parameter ``x0, x1, y0, y1, count, q_max`` (one lane per Gaussian): from ``tile_rects``.
+    ``tile_base`` (``UInt32``): index of the Gaussian's image's first tile. ``grid_x``
+    (``UInt32``, opaque scalar): tiles across. ``num_tiles`` (``int``): tiles over all images.
 
-    One host read (the number of pairs, to size the pair arrays).
+    A pair is kept only if the ellipse ``d^T conic d <= q_max`` meets the rectangle of the tile's
+    pixel samples (exact test of a convex quadratic over a box); the others would be skipped at
+    every pixel of the tile by the reference's ``alpha < 1/255`` rule. Two host reads (numbers
+    of candidate and kept pairs, to size the pair arrays).
     """
     UInt32 = type(count)
     n = dr.width(count)
     # ---- Global depth order (stable radix sort; culled Gaussians have count 0) ----
-    perm = dr.argsort(dr.select(count > 0, depth, dr.inf))
+    perm = dr.argsort(dr.select(count > 0, dr.detach(p.z), dr.inf))
     count_sorted = dr.gather(UInt32, count, perm)
     end = dr.prefix_reduce(dr.ReduceOp.Add, count_sorted, exclusive=False)
     num_pairs = int(end[n - 1])
@@ -136,13 +164,36 @@ def bin_gaussians(x0, x1, y0, y1, count, depth, tile_base, grid_x, num_tiles: in
     # Guarded divisor: masked tail lanes of a packet may read 0 and trap (notes, pitfall 2).
     w = dr.maximum(dr.gather(UInt32, x1, gid) - gx0, 1)
     row = k // w
-    tile = dr.gather(UInt32, tile_base, gid) + (gy0 + row) * grid_x + gx0 + (k - row * w)
+    tx = gx0 + (k - row * w)
+    ty = gy0 + row
+    tile = dr.gather(UInt32, tile_base, gid) + ty * grid_x + tx
 
-    # ---- Stable bucket sort by tile keeps the depth order within each tile ----
-    buckets = 1 << max(num_tiles - 1, 1).bit_length()
-    perm_tile = dr.detail.block_mkperm(tile, num_pairs, buckets)
-    pair_gid = dr.gather(UInt32, gid, perm_tile)
-    dr.scatter_reduce(dr.ReduceOp.Add, tile_count, UInt32(1), tile)
+    # ---- Exact ellipse-vs-tile test (pixel samples at tile origin + 0.5 .. + T - 0.5) ----
+    Float = type(p.u)
+    q_bound = dr.gather(Float, q_max, gid)
+    u = dr.gather(Float, dr.detach(p.u), gid)
+    v = dr.gather(Float, dr.detach(p.v), gid)
+    ca, cb, cc = (dr.gather(Float, dr.detach(c), gid) for c in p.conic)
+    first_x = Float(tx * tile_size) + 0.5
+    first_y = Float(ty * tile_size) + 0.5
+    span = float(tile_size - 1)
+    q_min = _min_quadratic_over_box(ca, cb, cc, u - first_x - span, u - first_x,
+                                    v - first_y - span, v - first_y)
+    keep = q_min <= q_bound
+
+    # ---- Stable bucket sort by tile keeps the depth order within each tile; dropped pairs go
+    # to one bucket behind all tiles ----
+    bucket = dr.select(keep, tile, num_tiles)
+    dr.eval(bucket, gid)  # one pair-generation kernel for both consumers below
+    buckets = 1 << num_tiles.bit_length()  # a power of two > num_tiles
+    perm_tile = dr.detail.block_mkperm(bucket, num_pairs, buckets)
+    dr.scatter_reduce(dr.ReduceOp.Add, tile_count, UInt32(1), bucket, active=bucket < num_tiles)
     tile_end = dr.prefix_reduce(dr.ReduceOp.Add, tile_count, exclusive=False)
     tile_start = tile_end - tile_count
-    return Bins(pair_gid=pair_gid, tile_start=tile_start, tile_end=tile_end, num_pairs=num_pairs)
+    num_kept = int(tile_end[num_tiles - 1])
+    if num_kept == 0:
+        return Bins(pair_gid=dr.zeros(UInt32, 1), tile_start=tile_start, tile_end=tile_end,
+                    num_pairs=0)
+    kept = dr.gather(UInt32, perm_tile, dr.arange(UInt32, num_kept))
+    pair_gid = dr.gather(UInt32, gid, kept)
+    return Bins(pair_gid=pair_gid, tile_start=tile_start, tile_end=tile_end, num_pairs=num_kept)

@@ -17,6 +17,7 @@ of an iteration targets one Gaussian (notes, pitfall 7).
 """
 
 import sys
+import typing
 from dataclasses import dataclass
 
 import drjit as dr
@@ -76,6 +77,10 @@ class Composite(dr.CustomOp):
     Outputs (row-major): colour (``Float``, [B, 3, H, W]), alpha and depth (``Float``, [B, H, W]).
     """
 
+    # No runtime type-check wrappers here: Dr.Jit maps ``set_grad_in`` names to the parameters
+    # of ``eval`` itself, and a wrapper (jaxtyping's import hook in our tests) would silently
+    # disconnect the gradients.
+    @typing.no_type_check
     def eval(self, u, v, ca, cb, cc, opacity, r, g, b, z, bins: Bins, lanes: PixelLanes,
              background, n_pix: int, clamp_gradient: str):
         Float, UInt32, ArrayXf = _types(u)
@@ -129,6 +134,8 @@ class Composite(dr.CustomOp):
         )
         _, T, cr, cg, cb_, depth, last, _ = dr.while_loop(state, cond, body,
                                                           label="usplat_composite")
+        # One kernel for the loop: each lazily consumed output would otherwise re-run it.
+        dr.eval(T, cr, cg, cb_, depth, last)
         self.T_final, self.last = T, last
         self.background = [dr.gather(Float, c, lanes.batch) for c in background]
 
@@ -144,6 +151,7 @@ class Composite(dr.CustomOp):
         dr.scatter(depth_out, depth, lanes.pixel, active=lanes.in_image)
         return color, alpha_out, depth_out
 
+    @typing.no_type_check
     def backward(self):
         lanes, records = self.lanes, self.records
         Float, UInt32, ArrayXf = _types(self.T_final)

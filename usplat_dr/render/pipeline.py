@@ -205,14 +205,17 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     # ---- Inputs, one lane per Gaussian ----
     lane = dr.arange(UInt32, n)
     batch = lane // dr.maximum(dr.opaque(UInt32, g), 1)
-    m = means.array
-    xyz = [dr.gather(Float, m, lane * 3 + i) for i in range(3)]
-    cv = covariances.array
-    cov6 = [dr.gather(Float, cv, lane * 9 + i) for i in (0, 1, 2, 4, 5, 8)]
-    sh = sh_coefficients.array
-    coeffs = [[dr.gather(Float, sh, lane * (3 * d) + (c * d + i)) for i in range(min(d, 16))]
-              for c in range(3)]
-    opac = dr.gather(Float, opacities.array, lane)
+    # The adjoint of a gather is a scatter-add into the input's gradient. ReduceMode.Local keeps
+    # that kernel independent of G: the default (Expand on LLVM) bakes the target size into the
+    # kernel and recompiles it for every new number of Gaussians (notes, pitfall 6).
+    def take(source, index):
+        return dr.gather(Float, source, index, mode=dr.ReduceMode.Local)
+
+    xyz = [take(means.array, lane * 3 + i) for i in range(3)]
+    cov6 = [take(covariances.array, lane * 9 + i) for i in (0, 1, 2, 4, 5, 8)]
+    coeffs = [[take(sh_coefficients.array, lane * (3 * d) + (c * d + i))
+               for i in range(min(d, 16))] for c in range(3)]
+    opac = take(opacities.array, lane)
     cam = _gather_camera(_cameras(mod, extrinsics, intrinsics, near, width, height), batch)
 
     # ---- Projection, colour and tile rectangles ----
@@ -220,10 +223,14 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     grid_x = -(-width // tile_size)
     grid_y = -(-height // tile_size)
     gx_f, gy_f = dr.opaque(Float, float(grid_x)), dr.opaque(Float, float(grid_y))
-    x0, x1, y0, y1, count = tile_rects(proj, tile_size, settings.opacity_cull, cam.width,
-                                       cam.height, gx_f, gy_f)
+    x0, x1, y0, y1, count, q_max = tile_rects(proj, tile_size, settings.opacity_cull,
+                                              cam.width, cam.height, gx_f, gy_f)
+    # Evaluate the per-Gaussian stage once: its lazy outputs are read by several later kernels,
+    # each of which would otherwise recompute the projection.
+    dr.eval(proj.u, proj.v, proj.conic, proj.rgb, proj.z, proj.radius, proj.valid, x0, x1, y0,
+            y1, count, q_max)
     tiles_per_image = grid_x * grid_y
-    bins = bin_gaussians(x0, x1, y0, y1, count, dr.detach(proj.z),
+    bins = bin_gaussians(proj, x0, x1, y0, y1, count, q_max, tile_size,
                          batch * dr.opaque(UInt32, tiles_per_image),
                          dr.opaque(UInt32, grid_x), num_images * tiles_per_image)
 

@@ -1,0 +1,41 @@
+"""Shared fixtures: the ``backend`` fixture runs LLVM always and CUDA where a GPU is present."""
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+import usplat_dr  # noqa: F401  (chooses libLLVM before anything imports drjit)
+
+sys.path.insert(0, str(Path(__file__).parent / "render"))
+
+
+def _cuda_available() -> bool:
+    if not torch.cuda.is_available():
+        return False
+    import drjit as dr
+
+    return dr.has_backend(dr.JitBackend.CUDA)
+
+
+BACKENDS = ["llvm"] + (["cuda"] if _cuda_available() else [])
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request) -> str:
+    """'llvm' (CPU tensors) or 'cuda' (CUDA tensors)."""
+    return request.param
+
+
+@pytest.fixture
+def device(backend) -> torch.device:
+    return torch.device("cpu" if backend == "llvm" else "cuda")
+
+
+@pytest.fixture(autouse=True)
+def _flush_denormals():
+    # exp() of large negative powers in the dense reference gives denormals, which make float64
+    # CPU arithmetic ~2x slower without changing any result we compare.
+    torch.set_flush_denormal(True)
+    yield
