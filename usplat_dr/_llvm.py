@@ -129,3 +129,11 @@ def configure() -> None:
 
 class LLVMUnavailableError(RuntimeError):
     """The Dr.Jit LLVM (CPU) backend cannot be used safely on this machine."""
+
+
+if __name__ == "__main__":
+    # Used by scripts/run.sh before any package is installed: print the chosen libLLVM, or exit 1.
+    chosen = choose_libllvm()
+    if chosen is None:
+        sys.exit(1)
+    print(chosen)

@@ -1,0 +1,82 @@
+#!/usr/bin/env bash
+# usplat-dr's entry point for a fresh Debian/Ubuntu machine with Python >= 3.10.
+#
+#   bash scripts/run.sh demo [ARGS]    render the demo (outputs/render-demo/ by default)
+#   bash scripts/run.sh test [ARGS]    run the test suite (pytest ARGS)
+#   bash scripts/run.sh doctor         report versions, libLLVM, backends, GPU
+#   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench_rasterizer.py)
+#   bash scripts/run.sh setup          only install
+#
+# Each command first installs what it needs, once: Debian's libllvm19 when no libLLVM >= 19 is
+# present (Dr.Jit's CPU backend; 15 and 16 crash it), a virtual environment in .venv (or
+# $USPLAT_VENV), and the package with its test extras through constraints.txt (torch==2.13.0).
+set -euo pipefail
+
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+VENV=${USPLAT_VENV:-$ROOT/.venv}
+PYTHON=${PYTHON:-python3}
+
+say() { printf '[usplat] %s\n' "$*" >&2; }
+
+ensure_python() {
+    if ! command -v "$PYTHON" >/dev/null; then
+        say "no $PYTHON found: install Python >= 3.10 (Debian/Ubuntu: sudo apt-get install python3 python3-venv)"
+        exit 1
+    fi
+    if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
+        say "$("$PYTHON" --version) is too old: usplat-dr needs Python >= 3.10 (set PYTHON=python3.X)"
+        exit 1
+    fi
+}
+
+ensure_libllvm() {
+    if "$PYTHON" "$ROOT/usplat_dr/_llvm.py" >/dev/null; then
+        return
+    fi
+    local cmd="apt-get update && apt-get install -y libllvm19"
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        say "no libLLVM >= 19 found (Dr.Jit's CPU backend needs one): installing libllvm19"
+        DEBIAN_FRONTEND=noninteractive bash -c "$cmd" >&2
+        "$PYTHON" "$ROOT/usplat_dr/_llvm.py" >/dev/null && return
+        say "libllvm19 installed but not found in the usual library folders"
+        exit 1
+    fi
+    say "no libLLVM >= 19 found (Dr.Jit's CPU backend needs one; 15 and 16 crash it). Run:"
+    say "    sudo sh -c '$cmd'"
+    say "or point DRJIT_LIBLLVM_PATH at a libLLVM >= 19, then run this command again."
+    exit 1
+}
+
+ensure_venv() {
+    if [ ! -x "$VENV/bin/python" ]; then
+        say "creating the virtual environment $VENV"
+        if ! "$PYTHON" -m venv "$VENV"; then
+            rm -rf "$VENV"
+            say "could not create a virtual environment: install venv support"
+            say "    (Debian/Ubuntu: sudo apt-get install python3-venv)"
+            exit 1
+        fi
+    fi
+    # Reinstall only when the requirements changed (hash of pyproject.toml + constraints.txt).
+    local stamp
+    stamp=$(cat "$ROOT/pyproject.toml" "$ROOT/constraints.txt" | sha256sum | cut -c1-16)
+    if [ "$(cat "$VENV/.usplat-installed" 2>/dev/null)" != "$stamp" ]; then
+        say "installing usplat-dr and its dependencies into $VENV (first run: a few minutes)"
+        "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
+            -c "$ROOT/constraints.txt" -e "$ROOT[test]" >&2
+        echo "$stamp" > "$VENV/.usplat-installed"
+    fi
+}
+
+setup() { ensure_python; ensure_libllvm; ensure_venv; }
+
+command=${1:-}
+[ $# -gt 0 ] && shift
+case "$command" in
+    setup) setup ;;
+    demo) setup; cd "$ROOT"; exec "$VENV/bin/usplat" render-demo "$@" ;;
+    test) setup; cd "$ROOT"; exec "$VENV/bin/python" -m pytest "$@" ;;
+    doctor) setup; exec "$VENV/bin/usplat" doctor ;;
+    bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench_rasterizer.py "$@" ;;
+    *) sed -n '2,13p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+esac

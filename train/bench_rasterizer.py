@@ -1,0 +1,167 @@
+"""Benchmark the Dr.Jit rasteriser (a script, not a test: timings are never asserted).
+
+Scenes: pixel-aligned (2 H W Gaussians unprojected from two views at random depths, rendered
+from a third), 64x64 / 8,192, 128x128 / 32,768 and 256x256 / 131,072 Gaussians, SH degree 0.
+For each size: forward (outputs evaluated) and forward+backward (gradients w.r.t. all Gaussian
+inputs evaluated) through the torch entry point, after warm-up, runs interleaved, median wall and
+process CPU time; Dr.Jit's peak allocation for one forward+backward; the cold-start time (first
+call in a new process with an empty kernel cache, measured in a subprocess); and the dense torch
+float32 reference (every pixel against every Gaussian, tests/render/reference.py) where it fits
+in memory, with ratios. Prints a Markdown table.
+
+    bash scripts/run.sh bench                 # all sizes
+    bash scripts/run.sh bench --sizes 64 --runs 9
+"""
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+import usplat_dr  # noqa: F401  (chooses libLLVM first)
+import drjit as dr  # noqa: E402
+from usplat_dr.render import RasterSettings, rasterize  # noqa: E402
+from usplat_dr.render.scenes import pixel_aligned_scene  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGETS = {64: (3.0, 8.0), 256: (30.0, 100.0)}  # ms (fwd, fwd+bwd), issue 2
+
+
+def _leaves(scene):
+    return [t.clone().requires_grad_(True)
+            for t in (scene.means, scene.covariances, scene.sh_coefficients, scene.opacities)]
+
+
+def make_fns(scene, settings, render=rasterize):
+    cams = scene.args()[:6]
+    fixed = [t.detach() for t in (scene.means, scene.covariances, scene.sh_coefficients,
+                                  scene.opacities)]
+
+    def fwd():
+        with torch.no_grad():
+            out = render(*cams, *fixed, settings) if settings else render(*cams, *fixed)
+        return out
+
+    def fwd_bwd():
+        leaves = _leaves(scene)
+        out = render(*cams, *leaves, settings) if settings else render(*cams, *leaves)
+        c, a, d = (out.color, out.alpha, out.depth) if hasattr(out, "color") else out
+        (c.sum() + a.sum() + d.sum()).backward()
+        return [t.grad for t in leaves]
+
+    return fwd, fwd_bwd
+
+
+def time_interleaved(fns: dict, runs: int) -> dict:
+    """Median wall and process CPU time (ms) of each function, runs interleaved."""
+    samples = {name: ([], []) for name in fns}
+    for _ in range(runs):
+        for name, fn in fns.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            samples[name][0].append((time.perf_counter() - w0) * 1e3)
+            samples[name][1].append((time.process_time() - c0) * 1e3)
+    return {name: (statistics.median(w), statistics.median(c), min(w))
+            for name, (w, c) in samples.items()}
+
+
+def kernel_breakdown(fn) -> list[tuple[float, int, str]]:
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        fn()
+        history = dr.kernel_history()
+    rows = [(k.get("execution_time", 0.0), k.get("size", 0), str(k.get("type")).split(".")[-1])
+            for k in history]
+    return sorted(rows, reverse=True)
+
+
+COLD_START = """
+import time, torch, usplat_dr
+from usplat_dr.render import rasterize
+from usplat_dr.render.scenes import pixel_aligned_scene
+s = pixel_aligned_scene({size}, {size}, seed=0)
+leaves = [t.clone().requires_grad_(True) for t in (s.means, s.covariances, s.sh_coefficients,
+                                                   s.opacities)]
+t0 = time.perf_counter()
+out = rasterize(*s.args()[:6], *leaves)
+(out.color.sum() + out.alpha.sum() + out.depth.sum()).backward()
+print((time.perf_counter() - t0) * 1e3)
+"""
+
+
+def cold_start_ms(size: int) -> float:
+    """First forward+backward in a new process with an empty Dr.Jit kernel cache (Dr.Jit keeps
+    its on-disk cache under $HOME/.drjit: a temporary HOME empties it)."""
+    with tempfile.TemporaryDirectory() as home:
+        env = dict(os.environ, HOME=home)
+        out = subprocess.run([sys.executable, "-c", COLD_START.format(size=size)], env=env,
+                             capture_output=True, text=True, check=True, cwd=ROOT)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--runs", type=int, default=7, help="timed runs per configuration")
+    parser.add_argument("--dense-max", type=int, default=64,
+                        help="largest image size for the dense torch reference (memory)")
+    parser.add_argument("--breakdown", action="store_true", help="print per-kernel times")
+    args = parser.parse_args()
+
+    sys.path.insert(0, str(ROOT / "tests" / "render"))
+    from reference import render_ref
+
+    torch.set_flush_denormal(True)  # the dense reference is 2x slower on denormals
+    load = os.getloadavg()
+    print(f"# {platform.node()} {platform.processor() or platform.machine()}, "
+          f"{os.cpu_count()} CPUs, load {load[0]:.2f}; drjit {dr.__version__}, "
+          f"torch {torch.__version__}, libLLVM {'.'.join(map(str, dr.detail.llvm_version()))}, "
+          f"Dr.Jit threads {dr.thread_count()}, torch threads {torch.get_num_threads()}")
+    print("\n| image | Gaussians | pairs | fwd ms (CPU ms) | fwd+bwd ms (CPU ms) | "
+          "cold start ms | Dr.Jit peak MB | dense torch fwd / fwd+bwd ms | speed-up fwd / "
+          "fwd+bwd | target fwd / fwd+bwd ms |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for size in args.sizes:
+        scene = pixel_aligned_scene(size, size, seed=0)
+        fwd, fwd_bwd = make_fns(scene, RasterSettings())
+        for _ in range(2):  # warm-up: compile (or load) kernels
+            fwd()
+            fwd_bwd()
+        fns = {"fwd": fwd, "fwd_bwd": fwd_bwd}
+        dense = size <= args.dense_max
+        if dense:
+            d_fwd, d_fwd_bwd = make_fns(scene, None, render_ref)
+            fns.update({"dense_fwd": d_fwd, "dense_fwd_bwd": d_fwd_bwd})
+        runs = args.runs if not dense else max(3, args.runs // 2)
+        t = time_interleaved(fns, runs)
+        dr.detail.malloc_clear_statistics()
+        fwd_bwd()
+        peak = dr.detail.malloc_watermark(dr.JitBackend.LLVM) / 2**20
+        pairs = fwd().aux["num_pairs"]
+        cold = cold_start_ms(size)
+        f, fb = t["fwd"], t["fwd_bwd"]
+        dense_cols = ("-", "-")
+        if dense:
+            df, dfb = t["dense_fwd"], t["dense_fwd_bwd"]
+            dense_cols = (f"{df[0]:.0f} / {dfb[0]:.0f}", f"{df[0] / f[0]:.0f}x / "
+                          f"{dfb[0] / fb[0]:.0f}x")
+        target = TARGETS.get(size)
+        print(f"| {size}x{size} | {scene.means.shape[1]:,} | {pairs:,} | {f[0]:.1f} ({f[1]:.1f}) "
+              f"| {fb[0]:.1f} ({fb[1]:.1f}) | {cold:.0f} | {peak:.0f} | {dense_cols[0]} | "
+              f"{dense_cols[1]} | {'%g / %g' % target if target else '-'} |", flush=True)
+        if args.breakdown:
+            for name, fn in (("fwd", fwd), ("fwd+bwd", fwd_bwd)):
+                rows = kernel_breakdown(fn)
+                total = sum(r[0] for r in rows)
+                top = ", ".join(f"{ms:.1f} ({kind}, {n:,})" for ms, n, kind in rows[:6])
+                print(f"|   {name} kernels: {len(rows)}, {total:.1f} ms; largest: {top} |")
+
+
+if __name__ == "__main__":
+    main()
