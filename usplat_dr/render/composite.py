@@ -84,7 +84,7 @@ class Composite(dr.CustomOp):
     def eval(self, u, v, ca, cb, cc, opacity, r, g, b, z, bins: Bins, lanes: PixelLanes,
              background, n_pix: int, clamp_gradient: str):
         Float, UInt32, ArrayXf = _types(u)
-        self.lanes, self.bins = lanes, bins
+        self.lanes = lanes
         self.num_gaussians = dr.width(u)
         self.clamp_gradient = clamp_gradient
 
