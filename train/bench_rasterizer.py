@@ -23,12 +23,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import drjit as dr
 import torch
 
 import usplat_dr  # noqa: F401  (chooses libLLVM first)
-import drjit as dr  # noqa: E402
-from usplat_dr.render import RasterSettings, rasterize  # noqa: E402
-from usplat_dr.render.scenes import pixel_aligned_scene  # noqa: E402
+from usplat_dr.render import RasterSettings, rasterize
+from usplat_dr.render.scenes import pixel_aligned_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGETS = {64: (3.0, 8.0), 256: (30.0, 100.0)}  # ms (fwd, fwd+bwd), issue 2

@@ -40,10 +40,11 @@ _VERSION_PATTERNS = (
 )
 
 INSTALL_HINT = (
-    "Install a libLLVM >= {min} (Debian 12 / Ubuntu 24.04: `sudo apt-get install libllvm19`) or "
+    f"Install a libLLVM >= {MIN_LLVM_MAJOR} (Debian 12 / Ubuntu 24.04: "
+    "`sudo apt-get install libllvm19`) or "
     "point DRJIT_LIBLLVM_PATH at one (e.g. export DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/"
     "libLLVM-19.so) before importing usplat_dr."
-).format(min=MIN_LLVM_MAJOR)
+)
 
 
 def llvm_major_from_path(path: str) -> int | None:

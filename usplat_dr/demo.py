@@ -10,8 +10,7 @@ import torch
 
 from usplat_dr.images import colorize_depth, grid, save_png
 from usplat_dr.render import RasterSettings, rasterize
-from usplat_dr.render.scenes import (covariances_from, orbit_cameras, random_rotations,
-                                     sh_from_rgb)
+from usplat_dr.render.scenes import covariances_from, orbit_cameras, random_rotations, sh_from_rgb
 
 log = logging.getLogger(__name__)
 

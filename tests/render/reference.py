@@ -102,7 +102,7 @@ def render_ref(extrinsics, intrinsics, near, far, image_shape, background, means
     3DGS backward does; ``"exact"`` differentiates the clamp (zero where it is active)."""
     H, W = image_shape
     colors, alphas, depths = [], [], []
-    degree = min(int(math.isqrt(sh.shape[-1])) - 1, 3)
+    degree = min(math.isqrt(sh.shape[-1]) - 1, 3)
     basis_fn = sh_basis_3dgs if basis == "3dgs" else sh_basis_mvsplat
     jj, ii = torch.meshgrid(torch.arange(W, dtype=means.dtype), torch.arange(H, dtype=means.dtype),
                             indexing="xy")

@@ -1,6 +1,7 @@
 """The rasteriser's entry points: batching, Dr.Jit vs torch, determinism, recompilation, errors."""
 
 import inspect
+
 import drjit as dr
 import pytest
 import torch

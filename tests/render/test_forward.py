@@ -13,8 +13,13 @@ import torch
 from helpers import max_err, render_both
 
 from usplat_dr.render import RasterSettings, rasterize
-from usplat_dr.render.scenes import (GaussianScene, covariances_from, pixel_aligned_scene,
-                                     random_rotations, random_scene)
+from usplat_dr.render.scenes import (
+    GaussianScene,
+    covariances_from,
+    pixel_aligned_scene,
+    random_rotations,
+    random_scene,
+)
 
 ATOL = 1e-5
 

@@ -12,10 +12,16 @@ import torch
 from helpers import gradients, weighted_loss, with_grad
 from reference import render_ref
 
-from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.geometry.cameras import normalized_intrinsics
-from usplat_dr.render.scenes import (GaussianScene, covariances_from, pixel_aligned_scene,
-                                     random_rotations, random_scene, sh_from_rgb)
+from usplat_dr.render import RasterSettings, rasterize
+from usplat_dr.render.scenes import (
+    GaussianScene,
+    covariances_from,
+    pixel_aligned_scene,
+    random_rotations,
+    random_scene,
+    sh_from_rgb,
+)
 
 NAMES = ("means", "covariances", "sh_coefficients", "opacities")
 RTOL = 1e-4

@@ -14,7 +14,7 @@ from usplat_dr.backend import module_of
 from usplat_dr.render.binning import bin_gaussians, tile_rects
 from usplat_dr.render.composite import Composite, PixelLanes
 from usplat_dr.render.project import Camera, project
-from usplat_dr.render.settings import REFERENCE_TILE, RasterSettings
+from usplat_dr.render.settings import RasterSettings
 from usplat_dr.render.sh import sh_degree_for
 
 
