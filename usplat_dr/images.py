@@ -1,4 +1,4 @@
-"""Writing renders as images: PNG (atomically), depth colour maps, contact sheets (numpy + Pillow)."""
+"""Writing renders as images: PNG (atomically), depth colour maps, contact sheets."""
 
 import os
 import tempfile
