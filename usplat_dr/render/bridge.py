@@ -13,9 +13,8 @@ from jaxtyping import Float
 from torch import Tensor
 
 from usplat_dr.backend import require_cuda, require_llvm
-from usplat_dr.render.pipeline import rasterize_drjit
+from usplat_dr.render.pipeline import check_shapes, rasterize_drjit
 from usplat_dr.render.settings import RasterSettings
-from usplat_dr.render.sh import sh_degree_for
 
 
 @dataclass
@@ -30,47 +29,27 @@ class RenderOutput:
     aux: dict = field(default_factory=dict)
 
 
-def _check(name: str, t, shape: tuple, device: torch.device) -> None:
-    if not isinstance(t, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
-    if t.dtype != torch.float32:
-        raise ValueError(f"{name} must have dtype torch.float32, got {t.dtype} "
-                         f"(convert with .float())")
-    if t.device != device:
-        raise ValueError(f"{name} must be on {device} like extrinsics, got {t.device}")
-    if len(shape) != t.dim() or any(s is not None and s != d for s, d in zip(shape, t.shape)):
-        expected = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name} must have shape {expected}, got {tuple(t.shape)}")
-
-
 def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_color, means,
                  covariances, sh_coefficients, opacities) -> None:
-    """Raise ``ValueError`` naming the argument, what was expected and what came."""
-    if (not isinstance(image_shape, (tuple, list)) or len(image_shape) != 2
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0
-                       for s in image_shape)):
-        raise ValueError(f"image_shape must be (H, W) with positive ints, got {image_shape!r}")
-    if not isinstance(extrinsics, torch.Tensor):
-        raise ValueError(f"extrinsics must be a torch.Tensor, got {type(extrinsics).__name__}")
-    device = extrinsics.device
-    if extrinsics.dim() != 3:
-        raise ValueError(f"extrinsics must have shape (B, 4, 4), got {tuple(extrinsics.shape)}")
-    b = extrinsics.shape[0]
-    _check("extrinsics", extrinsics, (b, 4, 4), device)
-    _check("intrinsics", intrinsics, (b, 3, 3), device)
-    _check("near", near, (b,), device)
-    _check("far", far, (b,), device)
-    _check("background_color", background_color, (b, 3), device)
-    _check("means", means, (b, None, 3), device)
-    g = means.shape[1]
-    _check("covariances", covariances, (b, g, 3, 3), device)
-    _check("sh_coefficients", sh_coefficients, (b, g, 3, None), device)
-    sh_degree_for(sh_coefficients.shape[3])
-    _check("opacities", opacities, (b, g), device)
+    """Raise ``ValueError`` naming the argument, what was expected and what came.
+
+    Shapes follow the same rules as the Dr.Jit entry (``check_shapes``); here also the tensor
+    type, dtype and device, and values (finite, near > 0, far > near) in one host read.
+    """
     named = {"extrinsics": extrinsics, "intrinsics": intrinsics, "near": near, "far": far,
              "background_color": background_color, "means": means,
              "covariances": covariances, "sh_coefficients": sh_coefficients,
              "opacities": opacities}
+    device = extrinsics.device if isinstance(extrinsics, torch.Tensor) else None
+    for name, t in named.items():
+        if not isinstance(t, torch.Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+        if t.dtype != torch.float32:
+            raise ValueError(f"{name} must have dtype torch.float32, got {t.dtype} "
+                             f"(convert with .float())")
+        if t.device != device:
+            raise ValueError(f"{name} must be on {device} like extrinsics, got {t.device}")
+    check_shapes(image_shape, {name: t.shape for name, t in named.items()})
     # One host read for all checks (the answer decides whether to raise).
     flags = torch.stack([torch.isfinite(t.detach()).all() for t in named.values()]
                         + [(near.detach() > 0).all(), (far.detach() > near.detach()).all()])

@@ -31,8 +31,39 @@ class RenderOutputDr:
     aux: dict = field(default_factory=dict)
 
 
-def _shape_error(name, expected, tensor):
-    return ValueError(f"{name} must have shape {expected}, got {tuple(tensor.shape)}")
+def check_shapes(image_shape, shapes: dict) -> tuple[int, int, int]:
+    """Validate ``image_shape`` and the argument shapes of a render call; return (B, G, D).
+
+    Parameter ``shapes`` (``dict``): argument name -> shape (any sequence of ints), for
+    extrinsics, intrinsics, near, far, background_color, means, covariances, sh_coefficients and
+    opacities. Shared by both entry points; raises ``ValueError`` naming the argument, what was
+    expected (``*`` for a free size) and what came.
+    """
+    if (not isinstance(image_shape, (tuple, list)) or len(image_shape) != 2
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0
+                       for s in image_shape)):
+        raise ValueError(f"image_shape must be (H, W) with positive ints, got {image_shape!r}")
+
+    def expect(name, *expected):
+        got = tuple(shapes[name])
+        if len(got) != len(expected) or any(e is not None and e != g
+                                            for e, g in zip(expected, got)):
+            text = "(" + ", ".join("*" if e is None else str(e) for e in expected) + ")"
+            raise ValueError(f"{name} must have shape {text}, got {got}")
+        return got
+
+    ext = tuple(shapes["extrinsics"])
+    b = expect("extrinsics", ext[0] if len(ext) == 3 else None, 4, 4)[0]
+    expect("intrinsics", b, 3, 3)
+    expect("near", b)
+    expect("far", b)
+    expect("background_color", b, 3)
+    g = expect("means", b, None, 3)[1]
+    expect("covariances", b, g, 3, 3)
+    d = expect("sh_coefficients", b, g, 3, None)[3]
+    sh_degree_for(d)
+    expect("opacities", b, g)
+    return b, g, d
 
 
 def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_color, means,
@@ -40,33 +71,14 @@ def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_colo
     """Validate shapes (and, with ``check_values``, finiteness and near/far) of Dr.Jit tensors.
 
     Returns ``(B, G, D)``. Raises ``ValueError`` naming the argument, what was expected and what
-    came. The torch entry point runs its own (cheaper) checks and skips these.
+    came. The torch entry point checks the same rules on torch tensors and skips these.
     """
-    if (not isinstance(image_shape, (tuple, list)) or len(image_shape) != 2
-            or not all(isinstance(s, int) and s > 0 for s in image_shape)):
-        raise ValueError(f"image_shape must be (H, W) with positive ints, got {image_shape!r}")
-    if len(extrinsics.shape) != 3 or tuple(extrinsics.shape[1:]) != (4, 4):
-        raise _shape_error("extrinsics", "(B, 4, 4)", extrinsics)
-    b = extrinsics.shape[0]
-    for name, t, expected in (("intrinsics", intrinsics, (b, 3, 3)), ("near", near, (b,)),
-                              ("far", far, (b,)), ("background_color", background_color, (b, 3))):
-        if tuple(t.shape) != expected:
-            raise _shape_error(name, expected, t)
-    if len(means.shape) != 3 or means.shape[0] != b or means.shape[2] != 3:
-        raise _shape_error("means", f"({b}, G, 3)", means)
-    g = means.shape[1]
-    if tuple(covariances.shape) != (b, g, 3, 3):
-        raise _shape_error("covariances", (b, g, 3, 3), covariances)
-    if len(sh_coefficients.shape) != 4 or tuple(sh_coefficients.shape[:3]) != (b, g, 3):
-        raise _shape_error("sh_coefficients", f"({b}, {g}, 3, D)", sh_coefficients)
-    sh_degree_for(sh_coefficients.shape[3])
-    if tuple(opacities.shape) != (b, g):
-        raise _shape_error("opacities", (b, g), opacities)
+    named = (("extrinsics", extrinsics), ("intrinsics", intrinsics), ("near", near),
+             ("far", far), ("background_color", background_color), ("means", means),
+             ("covariances", covariances), ("sh_coefficients", sh_coefficients),
+             ("opacities", opacities))
+    dims = check_shapes(image_shape, {name: t.shape for name, t in named})
     if check_values:
-        named = (("extrinsics", extrinsics), ("intrinsics", intrinsics), ("near", near),
-                 ("far", far), ("background_color", background_color), ("means", means),
-                 ("covariances", covariances), ("sh_coefficients", sh_coefficients),
-                 ("opacities", opacities))
         for name, t in named:
             if dr.width(t.array) and not dr.all(dr.isfinite(dr.detach(t.array)), axis=None):
                 raise ValueError(f"{name} must be finite, got NaN or Inf values")
@@ -74,7 +86,7 @@ def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_colo
             raise ValueError(f"near must be > 0, got {near.numpy()}")
         if not dr.all(dr.detach(far.array) > dr.detach(near.array), axis=None):
             raise ValueError(f"far must be > near, got near={near.numpy()} far={far.numpy()}")
-    return b, g, sh_coefficients.shape[3]
+    return dims
 
 
 def _cameras(mod, extrinsics, intrinsics, near, width: int, height: int):
