@@ -1,7 +1,6 @@
 """Writing renders as images: PNG (atomically), depth colour maps, contact sheets."""
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -48,17 +47,11 @@ def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Write [H, W] or [H, W, 3] floats in [0, 1] as PNG, atomically (temp file + rename)."""
     from PIL import Image
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            Image.fromarray(to_uint8(image)).save(f, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    from usplat_dr.io import atomic_open
+
+    with atomic_open(path, "wb") as f:
+        Image.fromarray(to_uint8(image)).save(f, format="PNG")
+    return Path(path)
 
 
 def grid(rows: list[list[np.ndarray]], pad: int = 4) -> np.ndarray:

@@ -5,8 +5,13 @@
 - ``intrinsics`` are normalised: row 0 divided by the image width, row 1 by the height, so
   ``[[fx/W, 0, cx/W], [0, fy/H, cy/H], [0, 0, 1]]``; ``Ks`` are in pixels.
 - A pixel (row i, column j) is sampled at (j + 0.5, i + 0.5) in pixel units.
+- Mitsuba's perspective sensor looks along its local +Z with local +X pointing to the image's
+  left and +Y up. So Mitsuba's ``to_world`` is the OpenCV c2w with its X and Y axes negated:
+  ``to_world = c2w @ diag(-1, -1, 1, 1)`` (``opencv_c2w_to_mitsuba``; the inverse is the
+  same product). Tests project known points both ways (``tests/data/test_conventions.py``).
 """
 
+import numpy as np
 import torch
 from jaxtyping import Float
 from torch import Tensor
@@ -44,3 +49,25 @@ def normalized_intrinsics(
     """Normalised intrinsics (fx, cx in units of the image width; fy, cy of its height)."""
     k = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return k.expand(*batch, 3, 3).clone()
+
+
+_FLIP_XY = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def opencv_c2w_to_mitsuba(c2w: np.ndarray) -> np.ndarray:
+    """Mitsuba sensor ``to_world`` for an OpenCV camera-to-world matrix ([..., 4, 4] numpy).
+
+    Examples:
+        >>> m = opencv_c2w_to_mitsuba(np.eye(4))
+        >>> m.diagonal().tolist()  # Mitsuba's +X is OpenCV's -X (image left), +Y is up
+        [-1.0, -1.0, 1.0, 1.0]
+    """
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if c2w.shape[-2:] != (4, 4):
+        raise ValueError(f"c2w must have shape (..., 4, 4), got {c2w.shape}")
+    return c2w @ _FLIP_XY
+
+
+def mitsuba_to_opencv_c2w(to_world: np.ndarray) -> np.ndarray:
+    """The inverse of ``opencv_c2w_to_mitsuba`` (the flip is its own inverse)."""
+    return opencv_c2w_to_mitsuba(to_world)

@@ -1,0 +1,139 @@
+"""Shims applied to examples as the field applies them (pixelSplat ``src/dataset/shims``).
+
+An example is pixelSplat's dict: ``{"context": views, "target": views, "scene": key}`` where
+``views`` holds ``extrinsics`` [V, 4, 4] (OpenCV c2w), ``intrinsics`` [V, 3, 3] (normalised),
+``image`` [V, 3, H, W] (float in [0, 1]), ``near`` [V], ``far`` [V], ``index`` [V] (int64 frame
+indices) and, for synthetic data, ``depth`` [V, H, W] (camera-space z, +inf on a miss).
+"""
+
+import math
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+
+def fov_degrees(intrinsics: Float[Tensor, "*batch 3 3"]) -> Float[Tensor, "*batch 2"]:
+    """Horizontal and vertical field of view in degrees, measured as the field does: the
+    angle between the rays through the midpoints of opposite image edges.
+
+    Examples:
+        >>> k = torch.tensor([[0.5, 0, 0.5], [0, 0.5, 0.5], [0, 0, 1]])
+        >>> fov_degrees(k).round().tolist()
+        [90.0, 90.0]
+    """
+    k_inv = torch.linalg.inv(intrinsics.double())
+
+    def ray(x: float, y: float) -> Tensor:
+        r = k_inv @ torch.tensor([x, y, 1.0], dtype=torch.float64)
+        return torch.nn.functional.normalize(r, dim=-1)
+
+    def angle(a: Tensor, b: Tensor) -> Tensor:
+        return (a * b).sum(-1).clamp(-1, 1).acos()
+
+    fov_x = angle(ray(0.0, 0.5), ray(1.0, 0.5))
+    fov_y = angle(ray(0.5, 0.0), ray(0.5, 1.0))
+    fov = torch.stack([fov_x, fov_y], -1)
+    return torch.rad2deg(fov).float()
+
+
+def _resize(image: Tensor, shape: tuple[int, int], nearest: bool) -> Tensor:
+    from PIL import Image
+
+    h, w = shape
+    if image.dtype == torch.uint8:  # [3, H, W]
+        im = Image.fromarray(image.permute(1, 2, 0).numpy())
+        out = np.asarray(im.resize((w, h), Image.LANCZOS)).copy()
+        return torch.from_numpy(out).permute(2, 0, 1)
+    # Float maps (depth): nearest neighbour keeps depths real (no mixing across edges).
+    im = Image.fromarray(image.float().numpy(), mode="F")
+    out = im.resize((w, h), Image.NEAREST if nearest else Image.BILINEAR)
+    return torch.from_numpy(np.asarray(out).copy()).to(image.dtype)
+
+
+def rescale_and_crop(
+    images: Tensor,  # uint8 [V, 3, H, W] (Lanczos) or float [V, H, W] depth (nearest)
+    intrinsics: Float[Tensor, "view 3 3"],
+    shape: tuple[int, int],
+) -> tuple[Tensor, Float[Tensor, "view 3 3"]]:
+    """Resize so the image covers ``shape``, then centre-crop to it; fx, fy scale by the crop
+    (cx, cy stay as stored, as in the field). Images are resized as uint8 with PIL Lanczos.
+
+    Examples:
+        >>> imgs = torch.zeros(1, 3, 360, 640, dtype=torch.uint8)
+        >>> k = torch.tensor([[[0.9, 0, 0.5], [0, 1.6, 0.5], [0, 0, 1]]])
+        >>> out, k2 = rescale_and_crop(imgs, k, (256, 256))
+        >>> tuple(out.shape), round(k2[0, 0, 0].item(), 4), round(k2[0, 1, 1].item(), 4)
+        ((1, 3, 256, 256), 1.5996, 1.6)
+    """
+    h_in, w_in = images.shape[-2:]
+    h_out, w_out = shape
+    scale = max(h_out / h_in, w_out / w_in)
+    h_scaled, w_scaled = round(h_in * scale), round(w_in * scale)
+    if (h_scaled, w_scaled) != (h_in, w_in):
+        images = torch.stack([_resize(im, (h_scaled, w_scaled), nearest=True) for im in images])
+    row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2
+    images = images[..., row:row + h_out, col:col + w_out]
+    intrinsics = intrinsics.clone()
+    intrinsics[:, 0, 0] *= w_scaled / w_out
+    intrinsics[:, 1, 1] *= h_scaled / h_out
+    return images, intrinsics
+
+
+def crop_views(views: dict, shape: tuple[int, int]) -> dict:
+    """``rescale_and_crop`` applied to one side of an example (image and, if present, depth)."""
+    views = dict(views)
+    image, intrinsics = rescale_and_crop(views["image"], views["intrinsics"], shape)
+    if "depth" in views:
+        views["depth"], _ = rescale_and_crop(views["depth"], views["intrinsics"], shape)
+    views["image"], views["intrinsics"] = image, intrinsics
+    return views
+
+
+def reflect_views(views: dict) -> dict:
+    """Mirror the views left-right: images flipped along width, extrinsics conjugated by
+    diag(-1, 1, 1, 1) (a mirrored world seen by mirrored cameras), and cx -> 1 - cx (the
+    field leaves cx, which is the same for its cx = 0.5)."""
+    views = dict(views)
+    reflect = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+    views["extrinsics"] = reflect @ views["extrinsics"] @ reflect
+    views["image"] = views["image"].flip(-1)
+    if "depth" in views:
+        views["depth"] = views["depth"].flip(-1)
+    k = views["intrinsics"].clone()
+    k[:, 0, 2] = 1.0 - k[:, 0, 2]
+    views["intrinsics"] = k
+    return views
+
+
+def augment_flip(example: dict, generator: torch.Generator, p: float = 0.5) -> dict:
+    """Training augmentation of the field: with probability ``p`` mirror context and targets
+    together."""
+    if torch.rand((), generator=generator).item() >= p:
+        return example
+    return {**example, "context": reflect_views(example["context"]),
+            "target": reflect_views(example["target"])}
+
+
+def normalize_baseline(example: dict, scale_bounds: bool) -> tuple[dict, float]:
+    """Divide all translations by the distance between the first two context cameras
+    (``make_baseline_1``); with ``scale_bounds`` divide near/far too. Raises ``ValueError``
+    when that distance is below 1e-3 (the field skips such examples)."""
+    ctx = example["context"]["extrinsics"]
+    scale = (ctx[0, :3, 3] - ctx[-1, :3, 3]).norm().item()
+    if not math.isfinite(scale) or scale < 1e-3:
+        raise ValueError(f"context baseline {scale:.2g} is below 1e-3")
+    out = dict(example)
+    for side in ("context", "target"):
+        views = dict(example[side])
+        e = views["extrinsics"].clone()
+        e[:, :3, 3] /= scale
+        views["extrinsics"] = e
+        if scale_bounds:
+            views["near"] = views["near"] / scale
+            views["far"] = views["far"] / scale
+        if "depth" in views:
+            views["depth"] = views["depth"] / scale
+        out[side] = views
+    return out, scale

@@ -1,0 +1,363 @@
+"""Procedural scene descriptions with known geometry (numpy only; Mitsuba builds them later).
+
+A description ("spec") is a JSON-able dict, stored with every synthetic scene so it can be
+re-rendered at another resolution (``usplat_dr.data.synth.render.render_spec``)::
+
+    {"version": 1, "kind": "indoor" | "outdoor" | "object", "seed": int,
+     "shapes": [{"name", "type": rectangle|cube|cylinder|sphere|disk|terrain,
+                 "to_world": 4x4, "material": {...}, ...}],
+     "lights": [{"type": area|point|directional|constant, ...}],
+     "cameras": {"c2w": [V x 4x4, OpenCV], "fov_x_deg": float},
+     "near_far": [near, far], "tags": [...]}
+
+World: +Y up, metres. Cameras: OpenCV camera-to-world (see ``usplat_dr.geometry.cameras``).
+Materials: ``{"type": "textured", "texture": spec, "uv_scale": s}`` (diffuse, procedural
+texture), ``{"type": "plain", "rgb": [...]}`` (textureless diffuse) or ``{"type": "glossy",
+"rgb": [...], "roughness": a}`` (rough plastic: view-dependent highlights).
+"""
+
+import math
+
+import numpy as np
+
+from usplat_dr.data.synth.textures import random_texture_spec
+
+KINDS = ("indoor", "outdoor", "object")
+SPEC_VERSION = 1
+
+
+# ---- Transforms (4x4, column vectors) ----
+
+
+def translate(v) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = v
+    return m
+
+
+def scale(v) -> np.ndarray:
+    return np.diag([*np.broadcast_to(np.asarray(v, dtype=float), (3,)), 1.0])
+
+
+def rotate(axis, degrees: float) -> np.ndarray:
+    """Rotation by ``degrees`` about ``axis`` (right-handed, Rodrigues)."""
+    a = np.asarray(axis, dtype=float)
+    a = a / np.linalg.norm(a)
+    t = math.radians(degrees)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    m = np.eye(4)
+    m[:3, :3] = np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)
+    return m
+
+
+def look_at_np(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """OpenCV camera-to-world looking from ``eye`` at ``target`` (numpy twin of
+    ``usplat_dr.geometry.cameras.look_at``)."""
+    eye, target, up = (np.asarray(v, dtype=float) for v in (eye, target, up))
+    fwd = target - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(-up, fwd)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, down, fwd, eye
+    return m
+
+
+def _mat(rng: np.random.Generator, p_plain: float, p_glossy: float) -> dict:
+    u = rng.random()
+    rgb = (0.2 + 0.7 * rng.random(3)).round(3).tolist()
+    if u < p_plain:
+        return {"type": "plain", "rgb": rgb}
+    if u < p_plain + p_glossy:
+        return {"type": "glossy", "rgb": rgb, "roughness": round(float(rng.uniform(0.05, 0.15)), 3)}
+    return {"type": "textured", "texture": random_texture_spec(rng),
+            "uv_scale": round(float(rng.uniform(1, 3)), 2)}
+
+
+def _shape(name: str, typ: str, to_world: np.ndarray, material: dict, **extra) -> dict:
+    return {"name": name, "type": typ, "to_world": np.round(to_world, 6).tolist(),
+            "material": material, **extra}
+
+
+def _box(name, center, half, material, yaw=0.0) -> dict:
+    return _shape(name, "cube", translate(center) @ rotate([0, 1, 0], yaw) @ scale(half), material)
+
+
+def _pole(name, base, height, radius, material) -> dict:
+    # Mitsuba's cylinder runs from z=0 to z=1; rotate its axis onto +Y.
+    m = translate(base) @ rotate([1, 0, 0], -90) @ scale([radius, radius, height])
+    return _shape(name, "cylinder", m, material)
+
+
+def _sphere(name, center, radius, material) -> dict:
+    return _shape(name, "sphere", translate(center) @ scale(radius), material)
+
+
+# ---- Camera paths ----
+
+
+def walkthrough(rng: np.random.Generator, frames: int, start, heading_deg: float,
+                length: float, height_fn=None, eye: float = 1.6) -> list[np.ndarray]:
+    """A handheld-video-like path: forward motion with a sideways sway, small yaw and pitch
+    oscillations (a few degrees), as in RealEstate10K walkthroughs."""
+    start = np.asarray(start, dtype=float)
+    h = math.radians(heading_deg)
+    fwd, side = np.array([math.sin(h), 0, math.cos(h)]), np.array([math.cos(h), 0, -math.sin(h)])
+    sway, w_sway, ph = rng.uniform(0.1, 0.35), rng.uniform(0.5, 1.5), rng.uniform(0, 2 * math.pi)
+    yaw_amp, w_yaw, ph_yaw = rng.uniform(4, 12), rng.uniform(0.5, 1.5), rng.uniform(0, 2 * math.pi)
+    pitch0, pitch_amp = rng.uniform(-8, 2), rng.uniform(1, 4)
+    cams = []
+    for i in range(frames):
+        t = i / max(frames - 1, 1)
+        p = start + fwd * length * t + side * sway * math.sin(2 * math.pi * w_sway * t + ph)
+        y = eye + (height_fn(p[0], p[2]) if height_fn else 0.0)
+        pos = np.array([p[0], y, p[2]])
+        yaw = h + math.radians(yaw_amp * math.sin(2 * math.pi * w_yaw * t + ph_yaw))
+        pitch = math.radians(pitch0 + pitch_amp * math.sin(2 * math.pi * t + ph))
+        d = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch),
+                      math.cos(yaw) * math.cos(pitch)])
+        cams.append(look_at_np(pos, pos + d))
+    return cams
+
+
+def orbit(frames: int, center, radius: float, elevation_deg: float, start_deg: float,
+          arc_deg: float) -> list[np.ndarray]:
+    """Cameras on a horizontal arc around ``center``, looking at it (turntable capture)."""
+    center = np.asarray(center, dtype=float)
+    cams = []
+    for i in range(frames):
+        a = math.radians(start_deg + arc_deg * i / max(frames - 1, 1))
+        e = math.radians(elevation_deg)
+        eye = center + radius * np.array([math.cos(e) * math.sin(a), math.sin(e),
+                                          math.cos(e) * math.cos(a)])
+        cams.append(look_at_np(eye, center))
+    return cams
+
+
+# ---- Scene kinds ----
+
+
+def indoor_room(rng: np.random.Generator, frames: int) -> dict:
+    """A room: floor, ceiling, four walls, furniture-like boxes, thin poles, area lights; a
+    walkthrough camera path."""
+    sx, sz, h = rng.uniform(5, 8), rng.uniform(5, 8), rng.uniform(2.7, 3.2)
+    textureless_walls = rng.random() < 0.35
+    wall_mat = ({"type": "plain", "rgb": (0.6 + 0.3 * rng.random(3)).round(3).tolist()}
+                if textureless_walls else _mat(rng, 0.0, 0.0))
+    floor_mat = _mat(rng, 0.0, 0.0)
+    shapes = [
+        _shape("floor", "rectangle", translate([0, 0, 0]) @ rotate([1, 0, 0], -90)
+               @ scale([sx / 2, sz / 2, 1]), floor_mat),
+        _shape("ceiling", "rectangle", translate([0, h, 0]) @ rotate([1, 0, 0], 90)
+               @ scale([sx / 2, sz / 2, 1]), _mat(rng, 0.5, 0.0)),
+    ]
+    for i, (pos, yaw, half_w) in enumerate([((0, h / 2, -sz / 2), 0, sx / 2),
+                                            ((0, h / 2, sz / 2), 180, sx / 2),
+                                            ((-sx / 2, h / 2, 0), 90, sz / 2),
+                                            ((sx / 2, h / 2, 0), -90, sz / 2)]):
+        shapes.append(_shape(f"wall{i}", "rectangle", translate(pos) @ rotate([0, 1, 0], yaw)
+                             @ scale([half_w, h / 2, 1]), wall_mat))
+
+    # Camera path first, then furniture placed off it.
+    heading = rng.uniform(0, 360)
+    length = rng.uniform(1.5, 3.0)
+    hd = math.radians(heading)
+    start = -0.5 * length * np.array([math.sin(hd), 0, math.cos(hd)])
+    start += rng.uniform(-0.5, 0.5, 3) * [1, 0, 1]
+    cams = walkthrough(rng, frames, start, heading, length, eye=rng.uniform(1.3, 1.7))
+    path = np.array([c[:3, 3] for c in cams])
+
+    glossy = rng.random() < 0.5
+    n_boxes, placed = int(rng.integers(4, 8)), 0
+    for _ in range(60):
+        if placed == n_boxes:
+            break
+        half = rng.uniform([0.2, 0.2, 0.2], [0.8, 0.6, 0.8]) * (1.4 if placed == 0 else 1.0)
+        c = np.array([rng.uniform(-sx / 2 + half[0], sx / 2 - half[0]), half[1],
+                      rng.uniform(-sz / 2 + half[2], sz / 2 - half[2])])
+        r = max(half[0], half[2]) * 1.42 + 0.5  # bounding circle + clearance for the camera
+        if (np.hypot(path[:, 0] - c[0], path[:, 2] - c[2]) < r).any():
+            continue
+        mat = _mat(rng, 0.2, 0.0)
+        if glossy and placed == 0:
+            mat = {"type": "glossy", "rgb": (0.2 + 0.6 * rng.random(3)).round(3).tolist(),
+                   "roughness": round(float(rng.uniform(0.05, 0.12)), 3)}
+        shapes.append(_box(f"box{placed}", c, half, mat, yaw=rng.uniform(-30, 30)))
+        if rng.random() < 0.4:  # an object on the box
+            shapes.append(_sphere(f"ball{placed}", c + [0, half[1] + 0.15, 0], 0.15,
+                                  _mat(rng, 0.2, 0.3)))
+        placed += 1
+    n_poles = int(rng.integers(2, 4))
+    for i in range(n_poles):
+        for _ in range(20):
+            b = np.array([rng.uniform(-sx / 2 + 0.3, sx / 2 - 0.3), 0,
+                          rng.uniform(-sz / 2 + 0.3, sz / 2 - 0.3)])
+            if (np.hypot(path[:, 0] - b[0], path[:, 2] - b[2]) > 0.5).all():
+                shapes.append(_pole(f"pole{i}", b, h, rng.uniform(0.02, 0.05), _mat(rng, 0.3, 0.2)))
+                break
+    lights = []
+    for i in range(2):
+        p = [rng.uniform(-sx / 4, sx / 4), h - 0.01, rng.uniform(-sz / 4, sz / 4)]
+        lights.append({"type": "area", "to_world": np.round(
+            translate(p) @ rotate([1, 0, 0], 90) @ scale([0.35, 0.35, 1]), 6).tolist(),
+            "radiance": round(float(rng.uniform(12, 20)), 2)})
+    lights.append({"type": "point", "position": np.round(path.mean(0) + [0, 0.6, 0], 4).tolist(),
+                   "intensity": round(float(rng.uniform(1.5, 3)), 2)})
+    tags = ["indoor", "walkthrough", "thin"] + (["textureless"] if textureless_walls else [])
+    tags += ["glossy"] if glossy else []
+    return {"shapes": shapes, "lights": lights, "cameras": cams, "near_far": [0.2, 20.0],
+            "tags": tags, "fov_x_deg": float(rng.uniform(60, 75))}
+
+
+def terrain_height(spec: dict, x, z):
+    """Height of the terrain described by ``spec`` at world (x, z) (bilinear in its grid)."""
+    grid = terrain_grid(spec)
+    n, size = spec["resolution"], spec["size"]
+    u = np.clip((np.asarray(x) + size / 2) / size * (n - 1), 0, n - 1.0001)
+    v = np.clip((np.asarray(z) + size / 2) / size * (n - 1), 0, n - 1.0001)
+    i, j = np.floor(v).astype(int), np.floor(u).astype(int)
+    fu, fv = u - j, v - i
+    return ((grid[i, j] * (1 - fu) + grid[i, j + 1] * fu) * (1 - fv)
+            + (grid[i + 1, j] * (1 - fu) + grid[i + 1, j + 1] * fu) * fv)
+
+
+def terrain_grid(spec: dict) -> np.ndarray:
+    """[n, n] heights (row = z, column = x) of a terrain spec: a few smooth random hills."""
+    rng = np.random.default_rng(spec["seed"])
+    n, size = spec["resolution"], spec["size"]
+    x = np.linspace(-size / 2, size / 2, n)
+    xx, zz = np.meshgrid(x, x)
+    h = np.zeros_like(xx)
+    for _ in range(spec["hills"]):
+        c = rng.uniform(-size / 2, size / 2, 2)
+        s = rng.uniform(2, 8)
+        h += rng.uniform(-1, 1) * spec["amplitude"] * np.exp(-((xx - c[0])**2 + (zz - c[1])**2)
+                                                             / (2 * s * s))
+    return h
+
+
+def outdoor_terrain(rng: np.random.Generator, frames: int) -> dict:
+    """Hilly textured terrain with objects (boxes, balls, poles and 'trees'), sun and sky; a
+    walkthrough path at eye height above the ground."""
+    terrain = {"seed": int(rng.integers(2**31)), "resolution": 65, "size": 40.0,
+               "hills": 12, "amplitude": float(rng.uniform(0.3, 1.0))}
+    shapes = [_shape("terrain", "terrain", np.eye(4), _mat(rng, 0.0, 0.0), terrain=terrain)]
+    shapes[0]["material"]["uv_scale"] = 12.0
+    heading, length = rng.uniform(0, 360), rng.uniform(3, 6)
+    hd = math.radians(heading)
+    start = -0.5 * length * np.array([math.sin(hd), 0, math.cos(hd)])
+
+    def ground(x, z):
+        return float(terrain_height(terrain, x, z))
+
+    cams = walkthrough(rng, frames, start, heading, length, height_fn=ground, eye=1.6)
+    path = np.array([c[:3, 3] for c in cams])
+    glossy = rng.random() < 0.5
+    n_obj = int(rng.integers(8, 14))
+    fwd = np.array([math.sin(hd), 0, math.cos(hd)])
+    k = 0
+    for _ in range(100):
+        if k == n_obj:
+            break
+        # Mostly in front of the path, within 3-15 m.
+        ang = math.radians(rng.uniform(-50, 50))
+        d = rng.uniform(3, 15)
+        dirv = np.array([fwd[0] * math.cos(ang) - fwd[2] * math.sin(ang), 0,
+                         fwd[0] * math.sin(ang) + fwd[2] * math.cos(ang)])
+        c = path[rng.integers(len(path))] * [1, 0, 1] + dirv * d
+        if (np.hypot(path[:, 0] - c[0], path[:, 2] - c[2]) < 1.5).any():
+            continue
+        g = ground(c[0], c[2])
+        kind = rng.integers(4)
+        mat = _mat(rng, 0.15, 0.0)
+        if glossy and k == 0:
+            mat = {"type": "glossy", "rgb": (0.2 + 0.6 * rng.random(3)).round(3).tolist(),
+                   "roughness": 0.08}
+            kind = 1
+        if kind == 0:
+            half = rng.uniform([0.3, 0.3, 0.3], [1.2, 1.0, 1.2])
+            shapes.append(_box(f"obj{k}", [c[0], g + half[1] - 0.05, c[2]], half, mat,
+                               yaw=rng.uniform(0, 90)))
+        elif kind == 1:
+            r = rng.uniform(0.3, 0.9)
+            shapes.append(_sphere(f"obj{k}", [c[0], g + r - 0.05, c[2]], r, mat))
+        elif kind == 2:
+            shapes.append(_pole(f"obj{k}", [c[0], g - 0.1, c[2]], rng.uniform(2, 4),
+                                rng.uniform(0.03, 0.08), mat))
+        else:  # a tree: trunk and crown
+            hgt = rng.uniform(1.5, 3)
+            shapes.append(_pole(f"obj{k}", [c[0], g - 0.1, c[2]], hgt, 0.12,
+                                {"type": "plain", "rgb": [0.35, 0.25, 0.15]}))
+            shapes.append(_sphere(f"obj{k}crown", [c[0], g + hgt, c[2]], rng.uniform(0.6, 1.1),
+                                  {"type": "textured", "texture": {
+                                      **random_texture_spec(rng), "pattern": "noise",
+                                      "colors": [[0.1, 0.4, 0.1], [0.25, 0.55, 0.15],
+                                                 [0.05, 0.25, 0.05]]}, "uv_scale": 2.0}))
+        k += 1
+    sun = rng.uniform([-1, -1.0, -1], [1, -0.4, 1])
+    lights = [{"type": "directional", "direction": np.round(sun / np.linalg.norm(sun), 4).tolist(),
+               "irradiance": round(float(rng.uniform(2.5, 3.5)), 2)},
+              {"type": "constant", "radiance": [0.35, 0.45, 0.6]}]
+    tags = ["outdoor", "walkthrough", "thin"] + (["glossy"] if glossy else [])
+    return {"shapes": shapes, "lights": lights, "cameras": cams, "near_far": [0.5, 100.0],
+            "tags": tags, "fov_x_deg": float(rng.uniform(60, 75))}
+
+
+def object_turntable(rng: np.random.Generator, frames: int) -> dict:
+    """Objects on a textured turntable, captured on an orbit (DTU-like near 2.125 / far 4.525)."""
+    shapes = [_shape("turntable", "disk", translate([0, 0, 0]) @ rotate([1, 0, 0], -90)
+                     @ scale(1.0), _mat(rng, 0.0, 0.0))]
+    textureless = rng.random() < 0.35
+    glossy = rng.random() < 0.5
+    n = int(rng.integers(2, 5))
+    for i in range(n):
+        c = np.array([rng.uniform(-0.5, 0.5), 0, rng.uniform(-0.5, 0.5)])
+        mat = _mat(rng, 0.0, 0.0)
+        if textureless and i == 0:
+            mat = {"type": "plain", "rgb": (0.3 + 0.6 * rng.random(3)).round(3).tolist()}
+        if glossy and i == n - 1:
+            mat = {"type": "glossy", "rgb": (0.2 + 0.6 * rng.random(3)).round(3).tolist(),
+                   "roughness": round(float(rng.uniform(0.05, 0.12)), 3)}
+        if i % 3 == 0:
+            r = rng.uniform(0.2, 0.4)
+            shapes.append(_sphere(f"obj{i}", c + [0, r, 0], r, mat))
+        elif i % 3 == 1:
+            half = rng.uniform(0.12, 0.3, 3)
+            shapes.append(_box(f"obj{i}", c + [0, half[1], 0], half, mat, yaw=rng.uniform(0, 90)))
+        else:
+            shapes.append(_pole(f"obj{i}", c, rng.uniform(0.4, 0.8), rng.uniform(0.05, 0.15), mat))
+    cams = orbit(frames, [0, 0.3, 0], rng.uniform(3.2, 3.5), rng.uniform(20, 35),
+                 rng.uniform(0, 360), rng.uniform(150, 200))
+    sun = rng.uniform([-1, -1.0, -1], [1, -0.5, 1])
+    lights = [{"type": "directional", "direction": np.round(sun / np.linalg.norm(sun), 4).tolist(),
+               "irradiance": 2.5},
+              {"type": "constant", "radiance": [0.4, 0.4, 0.42]}]
+    tags = ["object", "orbit"] + (["textureless"] if textureless else [])
+    tags += ["glossy"] if glossy else []
+    return {"shapes": shapes, "lights": lights, "cameras": cams, "near_far": [2.125, 4.525],
+            "tags": tags, "fov_x_deg": float(rng.uniform(30, 38))}
+
+
+BUILDERS = {"indoor": indoor_room, "outdoor": outdoor_terrain, "object": object_turntable}
+
+
+def make_spec(kind: str, seed: int, frames: int) -> dict:
+    """The description of one procedural scene (deterministic for ``(kind, seed, frames)``).
+
+    Examples:
+        >>> spec = make_spec("indoor", 0, 4)
+        >>> spec["kind"], len(spec["cameras"]["c2w"]), spec == make_spec("indoor", 0, 4)
+        ('indoor', 4, True)
+    """
+    if kind not in BUILDERS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}")
+    rng = np.random.default_rng([seed, KINDS.index(kind)])
+    s = BUILDERS[kind](rng, frames)
+    return {"version": SPEC_VERSION, "kind": kind, "seed": seed, "shapes": s["shapes"],
+            "lights": s["lights"],
+            "cameras": {"c2w": [np.round(c, 7).tolist() for c in s["cameras"]],
+                        "fov_x_deg": round(s["fov_x_deg"], 4)},
+            "near_far": s["near_far"], "tags": s["tags"]}
