@@ -9,6 +9,7 @@ import torch
 import usplat_dr  # noqa: F401  (chooses libLLVM before anything imports drjit)
 
 sys.path.insert(0, str(Path(__file__).parent / "render"))
+sys.path.insert(0, str(Path(__file__).parent / "data"))
 
 
 def _cuda_available() -> bool:

@@ -121,7 +121,7 @@ class ChunkDataset(IterableDataset):
     ``rank``/``world_size`` default to torch.distributed's when it is initialised.
     """
 
-    def __init__(self, cfg: DatasetCfg, stage: Stage, step_tracker: StepTracker | None = None,
+    def __init__(self, cfg: DatasetCfg, stage: str, step_tracker: StepTracker | None = None,
                  rank: int | None = None, world_size: int | None = None):
         if stage not in ("train", "val", "test"):
             raise ValueError(f"stage must be 'train', 'val' or 'test', got {stage!r}")
