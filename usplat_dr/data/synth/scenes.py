@@ -39,7 +39,7 @@ def scale(v) -> np.ndarray:
     return np.diag([*np.broadcast_to(np.asarray(v, dtype=float), (3,)), 1.0])
 
 
-def rotate(axis, degrees: float) -> np.ndarray:
+def rotate(axis, degrees) -> np.ndarray:
     """Rotation by ``degrees`` about ``axis`` (right-handed, Rodrigues)."""
     a = np.asarray(axis, dtype=float)
     a = a / np.linalg.norm(a)
@@ -97,8 +97,8 @@ def _sphere(name, center, radius, material) -> dict:
 # ---- Camera paths ----
 
 
-def walkthrough(rng: np.random.Generator, frames: int, start, heading_deg: float,
-                length: float, height_fn=None, eye: float = 1.6) -> list[np.ndarray]:
+def walkthrough(rng: np.random.Generator, frames: int, start, heading_deg, length,
+                height_fn=None, eye=1.6) -> list[np.ndarray]:
     """A handheld-video-like path: forward motion with a sideways sway, small yaw and pitch
     oscillations (a few degrees), as in RealEstate10K walkthroughs."""
     start = np.asarray(start, dtype=float)
@@ -121,8 +121,7 @@ def walkthrough(rng: np.random.Generator, frames: int, start, heading_deg: float
     return cams
 
 
-def orbit(frames: int, center, radius: float, elevation_deg: float, start_deg: float,
-          arc_deg: float) -> list[np.ndarray]:
+def orbit(frames: int, center, radius, elevation_deg, start_deg, arc_deg) -> list[np.ndarray]:
     """Cameras on a horizontal arc around ``center``, looking at it (turntable capture)."""
     center = np.asarray(center, dtype=float)
     cams = []
