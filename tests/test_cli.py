@@ -52,8 +52,12 @@ def test_cli_rejects_bad_arguments():
         main(["no-such-command"])
 
 
-@pytest.mark.parametrize("module", ["usplat_dr.render.bridge", "usplat_dr.render.pipeline",
-                                    "usplat_dr._llvm", "usplat_dr.geometry.cameras"])
+@pytest.mark.parametrize("module", [
+    "usplat_dr.render.bridge", "usplat_dr.render.pipeline", "usplat_dr._llvm",
+    "usplat_dr.geometry.cameras", "usplat_dr.geometry.quaternions", "usplat_dr.io",
+    "usplat_dr.metrics", "usplat_dr.data.chunks", "usplat_dr.data.shims",
+    "usplat_dr.data.view_sampler", "usplat_dr.data.dataset", "usplat_dr.data.synth",
+    "usplat_dr.data.synth.textures", "usplat_dr.data.synth.scenes"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module))
     assert result.attempted > 0 and result.failed == 0

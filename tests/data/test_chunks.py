@@ -8,9 +8,19 @@ import pytest
 import torch
 from fakes import fake_scene, random_poses, w2c_rows, write_plain_dataset
 
-from usplat_dr.data import (BadSceneError, ChunkDataset, ChunkWriter, ViewSamplerAllCfg,
-                            ViewSamplerEvaluationCfg, cameras_to_matrices, dataset_cfg,
-                            decode_image, encode_image, matrices_to_cameras, read_chunk)
+from usplat_dr.data import (
+    BadSceneError,
+    ChunkDataset,
+    ChunkWriter,
+    ViewSamplerAllCfg,
+    ViewSamplerEvaluationCfg,
+    cameras_to_matrices,
+    dataset_cfg,
+    decode_image,
+    encode_image,
+    matrices_to_cameras,
+    read_chunk,
+)
 
 
 def test_cameras_decode_matches_numpy_inverse():

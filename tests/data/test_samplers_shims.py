@@ -10,11 +10,18 @@ import torch
 from fakes import fake_scene, write_plain_dataset
 from torch.utils.data import DataLoader
 
-from usplat_dr.data import (ChunkDataset, StepTracker, ViewSamplerAllCfg, ViewSamplerBoundedCfg,
-                            ViewSamplerEvaluationCfg, ViewSamplingError, dataset_cfg,
-                            get_view_sampler, read_evaluation_index)
-from usplat_dr.data.shims import (fov_degrees, normalize_baseline, reflect_views,
-                                  rescale_and_crop)
+from usplat_dr.data import (
+    ChunkDataset,
+    StepTracker,
+    ViewSamplerAllCfg,
+    ViewSamplerBoundedCfg,
+    ViewSamplerEvaluationCfg,
+    ViewSamplingError,
+    dataset_cfg,
+    get_view_sampler,
+    read_evaluation_index,
+)
+from usplat_dr.data.shims import fov_degrees, normalize_baseline, reflect_views, rescale_and_crop
 
 # ---- bounded sampler ----
 

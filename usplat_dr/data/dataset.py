@@ -35,7 +35,6 @@ from usplat_dr.data.chunks import (
 )
 from usplat_dr.data.shims import augment_flip, crop_views, fov_degrees, normalize_baseline
 from usplat_dr.data.view_sampler import (
-    Stage,
     StepTracker,
     ViewSamplerBoundedCfg,
     ViewSamplerCfg,
