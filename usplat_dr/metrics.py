@@ -60,5 +60,6 @@ def ssim_torch(pred: Float[Tensor, "batch 3 h w"], gt: Float[Tensor, "batch 3 h 
     var_g = blur(gt * gt) - mu_g**2
     cov = blur(pred * gt) - mu_p * mu_g
     c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mu_p * mu_g + c1) * (2 * cov + c2)) / ((mu_p**2 + mu_g**2 + c1) * (var_p + var_g + c2))
+    num = (2 * mu_p * mu_g + c1) * (2 * cov + c2)
+    s = num / ((mu_p**2 + mu_g**2 + c1) * (var_p + var_g + c2))
     return s.mean(dim=(1, 2, 3))

@@ -91,7 +91,8 @@ def test_plain_torch_save_chunk_loads(tmp_path):
     assert ex["context"]["image"].shape == (2, 3, 256, 256)
     assert ex["context"]["image"].dtype == torch.float32
     assert 0 <= ex["context"]["image"].min() and ex["context"]["image"].max() <= 1
-    assert ex["target"]["near"].tolist() == [1.0] * 3 and ex["target"]["far"].tolist() == [100.0] * 3
+    assert ex["target"]["near"].tolist() == [1.0] * 3
+    assert ex["target"]["far"].tolist() == [100.0] * 3
     # c2w = inverse of the stored w2c; the crop scales fx by 455/256 (360x640 -> 256x455).
     c2w_ref = np.linalg.inv(np.concatenate([scenes[0]["cameras"][1, 6:].reshape(3, 4).numpy(),
                                             [[0, 0, 0, 1]]]))

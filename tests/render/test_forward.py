@@ -84,7 +84,8 @@ def test_follows_the_16x16_tile_cut(device):
 
 @pytest.mark.parametrize("settings", [
     RasterSettings(tile_size=4), RasterSettings(tile_size=8), RasterSettings(tile_size=16),
-    RasterSettings(tile_size=4, opacity_cull=False), RasterSettings(tile_size=8, opacity_cull=False),
+    RasterSettings(tile_size=4, opacity_cull=False),
+    RasterSettings(tile_size=8, opacity_cull=False),
 ])
 def test_every_tiling_renders_the_reference_function_bit_for_bit(device, settings):
     # Smaller tiles and opacity culling only drop (tile, Gaussian) pairs that the reference's own
