@@ -58,7 +58,7 @@ def _fit(args) -> int:
     cfg = FitCfg(iterations=args.iterations, seed=args.seed)
     result = fit(views_from_record(record), cfg, out_png=out / f"fit_{key}.png",
                  progress=not args.quiet)
-    summary = {"scene": key, **{k: v for k, v in result.__dict__.items()}}
+    summary = {"scene": key, **result.__dict__}
     from usplat_dr.io import write_json
 
     write_json(out / f"fit_{key}.json", summary)

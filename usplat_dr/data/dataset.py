@@ -16,7 +16,7 @@ Expected skips (too few frames for the sampler, no evaluation-index entry, FOV o
 import collections
 import hashlib
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -267,6 +267,3 @@ class ChunkDataset(IterableDataset):
             example[side] = v
         return example
 
-
-def with_sampler(cfg: DatasetCfg, view_sampler: ViewSamplerCfg) -> DatasetCfg:
-    return replace(cfg, view_sampler=view_sampler)
