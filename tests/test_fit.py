@@ -54,11 +54,12 @@ def test_split_views():
 def test_fit_raises_held_out_psnr():
     """A short fit on a small synthetic room: held-out PSNR rises by a clear margin."""
     spec = make_spec("indoor", 4, 8)
-    images, depths, materials, k = render_spec(spec, (32, 32), spp=32, seed=4)
+    # 128 spp: at 32 spp the ground truth's own noise caps held-out PSNR near 33.5 dB.
+    images, depths, materials, k = render_spec(spec, (32, 32), spp=128, seed=4)
     views = views_from_record(scene_record("room", spec, images, depths, materials, k))
     result = fit(views, FitCfg(iterations=80, batch_views=2), progress=False)
-    # The depth initialisation alone gives ~20 dB on held-out views (one Gaussian per pixel of
-    # other views); 80 steps add well over 3 dB (about 7 when measured).
+    # The depth initialisation alone gives ~31.5 dB on held-out views (one Gaussian per pixel
+    # of other views); 80 steps reach ~37.5 dB when measured, twice the 3 dB margin.
     assert result.psnr_after > result.psnr_before + 3.0, result
     assert result.ssim_after > result.ssim_before
 

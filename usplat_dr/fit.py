@@ -19,9 +19,11 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from usplat_dr.geometry.cameras import pixel_directions
 from usplat_dr.geometry.quaternions import quat_xyzw_to_matrix
 from usplat_dr.metrics import psnr, ssim, ssim_torch
 from usplat_dr.render import rasterize
+from usplat_dr.render.scenes import covariances_from
 from usplat_dr.render.sh import C0
 
 log = logging.getLogger(__name__)
@@ -97,13 +99,10 @@ def init_from_depth(views: SceneViews, which: list[int], stride: int, sh_degree:
     h, w = views.depths.shape[1:]
     for v in which:
         d = views.depths[v, ::stride, ::stride]
-        ii, jj = torch.meshgrid(torch.arange(0, h, stride), torch.arange(0, w, stride),
-                                indexing="ij")
         k = views.intrinsics[v]
         ok = torch.isfinite(d)
-        x = ((jj + 0.5) / w - k[0, 2]) / k[0, 0] * d
-        y = ((ii + 0.5) / h - k[1, 2]) / k[1, 1] * d
-        cam = torch.stack([x, y, d, torch.ones_like(d)], -1)[ok]  # [N, 4]
+        dirs = torch.from_numpy(pixel_directions(k.numpy(), (h, w))[::stride, ::stride]).float()
+        cam = torch.cat([dirs * d[..., None], torch.ones_like(d)[..., None]], -1)[ok]  # [N, 4]
         means.append((cam @ views.extrinsics[v].T)[:, :3])
         colors.append(views.images[v, :, ::stride, ::stride].permute(1, 2, 0)[ok])
         footprint = d[ok] / (k[0, 0] * w) * stride  # pixel size at that depth
@@ -124,9 +123,7 @@ def init_from_depth(views: SceneViews, which: list[int], stride: int, sh_degree:
 
 def render_views(params: dict, views: SceneViews, which: list[int]):
     b = len(which)
-    rot = quat_xyzw_to_matrix(params["quats_xyzw"])
-    s = params["log_scales"].exp()
-    cov = rot @ torch.diag_embed(s * s) @ rot.transpose(-1, -2)
+    cov = covariances_from(quat_xyzw_to_matrix(params["quats_xyzw"]), params["log_scales"].exp())
     sh = torch.cat([params["sh_dc"], params["sh_rest"]], -1)
     g = len(params["means"])
     idx = torch.tensor(which)

@@ -38,7 +38,7 @@ def fov_degrees(intrinsics: Float[Tensor, "*batch 3 3"]) -> Float[Tensor, "*batc
     return torch.rad2deg(fov).float()
 
 
-def _resize(image: Tensor, shape: tuple[int, int], nearest: bool) -> Tensor:
+def _resize(image: Tensor, shape: tuple[int, int]) -> Tensor:
     from PIL import Image
 
     h, w = shape
@@ -48,7 +48,7 @@ def _resize(image: Tensor, shape: tuple[int, int], nearest: bool) -> Tensor:
         return torch.from_numpy(out).permute(2, 0, 1)
     # Float maps (depth): nearest neighbour keeps depths real (no mixing across edges).
     im = Image.fromarray(image.float().numpy(), mode="F")
-    out = im.resize((w, h), Image.NEAREST if nearest else Image.BILINEAR)
+    out = im.resize((w, h), Image.NEAREST)
     return torch.from_numpy(np.asarray(out).copy()).to(image.dtype)
 
 
@@ -72,7 +72,7 @@ def rescale_and_crop(
     scale = max(h_out / h_in, w_out / w_in)
     h_scaled, w_scaled = round(h_in * scale), round(w_in * scale)
     if (h_scaled, w_scaled) != (h_in, w_in):
-        images = torch.stack([_resize(im, (h_scaled, w_scaled), nearest=True) for im in images])
+        images = torch.stack([_resize(im, (h_scaled, w_scaled)) for im in images])
     row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2
     images = images[..., row:row + h_out, col:col + w_out]
     intrinsics = intrinsics.clone()

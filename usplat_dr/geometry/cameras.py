@@ -51,6 +51,24 @@ def normalized_intrinsics(
     return k.expand(*batch, 3, 3).clone()
 
 
+def pixel_directions(intrinsics: np.ndarray, image_shape: tuple[int, int]) -> np.ndarray:
+    """[H, W, 3] camera-space ray directions ``(x', y', 1)`` through every pixel centre, for
+    normalised ``intrinsics`` [3, 3] (numpy). A point at camera-space depth z on the ray of
+    pixel (i, j) is ``z * directions[i, j]``.
+
+    Examples:
+        >>> k = np.array([[0.5, 0, 0.5], [0, 0.5, 0.5], [0, 0, 1]])
+        >>> pixel_directions(k, (2, 2))[0, 0].tolist()  # pixel centre (0.5, 0.5) of 2x2
+        [-0.5, -0.5, 1.0]
+    """
+    h, w = image_shape
+    k = np.asarray(intrinsics, dtype=np.float64)
+    x = ((np.arange(w) + 0.5) / w - k[0, 2]) / k[0, 0]
+    y = ((np.arange(h) + 0.5) / h - k[1, 2]) / k[1, 1]
+    xx, yy = np.meshgrid(x, y)
+    return np.stack([xx, yy, np.ones_like(xx)], -1)
+
+
 _FLIP_XY = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 

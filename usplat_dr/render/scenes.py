@@ -13,6 +13,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from usplat_dr.geometry.cameras import look_at, normalized_intrinsics
+from usplat_dr.geometry.quaternions import quat_xyzw_to_matrix
 from usplat_dr.render.sh import C0
 
 
@@ -49,13 +50,8 @@ class GaussianScene:
 
 def random_rotations(n: int, generator: torch.Generator) -> Float[Tensor, "n 3 3"]:
     """Uniformly random rotation matrices (from normalised Gaussian quaternions)."""
-    q = torch.nn.functional.normalize(torch.randn(n, 4, generator=generator), dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(n, 3, 3)
+    q_wxyz = torch.randn(n, 4, generator=generator)
+    return quat_xyzw_to_matrix(q_wxyz[:, [1, 2, 3, 0]])
 
 
 def covariances_from(rotations: Tensor, scales: Tensor) -> Tensor:

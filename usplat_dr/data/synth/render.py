@@ -14,7 +14,7 @@ import numpy as np
 
 from usplat_dr.data.synth.scenes import terrain_grid
 from usplat_dr.data.synth.textures import make_texture
-from usplat_dr.geometry.cameras import opencv_c2w_to_mitsuba
+from usplat_dr.geometry.cameras import opencv_c2w_to_mitsuba, pixel_directions
 
 # Material classes in the per-pixel material map.
 MISS, TEXTURED, PLAIN, GLOSSY = 0, 1, 2, 3
@@ -147,10 +147,7 @@ def trace_depth(mi, scene, c2w: np.ndarray, intrinsics: np.ndarray,
     import drjit as dr
 
     h, w = resolution
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    x = (jj / w - intrinsics[0, 2]) / intrinsics[0, 0]
-    y = (ii / h - intrinsics[1, 2]) / intrinsics[1, 1]
-    d_cam = np.stack([x, y, np.ones_like(x)], -1).reshape(-1, 3)
+    d_cam = pixel_directions(intrinsics, resolution).reshape(-1, 3)
     norm = np.linalg.norm(d_cam, axis=-1)
     d_world = (d_cam / norm[:, None]) @ np.asarray(c2w)[:3, :3].T
     o = np.broadcast_to(np.asarray(c2w)[:3, 3], d_world.shape)
@@ -162,12 +159,12 @@ def trace_depth(mi, scene, c2w: np.ndarray, intrinsics: np.ndarray,
     depth = (t / norm).reshape(h, w)
     codes = None
     if shape_codes is not None:
-        shapes = scene.shapes()
+        # Shape pointers compare as registry ids: map each id seen to its material code.
         ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape))
         all_ids = np.array(dr.reinterpret_array(mi.UInt32, scene.shapes_dr()))
-        lut = {int(k): shape_codes.get(s.id(), MISS) for k, s in zip(all_ids, shapes)}
-        codes = np.array([lut.get(int(k), MISS) for k in np.unique(ids)])
-        codes = codes[np.searchsorted(np.unique(ids), ids)]
+        lut = {int(k): shape_codes.get(s.id(), MISS) for k, s in zip(all_ids, scene.shapes())}
+        uniq, inverse = np.unique(ids, return_inverse=True)
+        codes = np.array([lut.get(int(k), MISS) for k in uniq], dtype=np.uint8)[inverse]
         codes = np.where(np.isfinite(t), codes, MISS).reshape(h, w).astype(np.uint8)
     return depth, codes
 

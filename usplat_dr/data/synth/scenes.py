@@ -1,4 +1,4 @@
-"""Procedural scene descriptions with known geometry (numpy only; Mitsuba builds them later).
+"""Procedural scene descriptions with known geometry (numpy and torch; Mitsuba builds them later).
 
 A description ("spec") is a JSON-able dict, stored with every synthetic scene so it can be
 re-rendered at another resolution (``usplat_dr.data.synth.render.render_spec``)::
@@ -19,8 +19,10 @@ texture), ``{"type": "plain", "rgb": [...]}`` (textureless diffuse) or ``{"type"
 import math
 
 import numpy as np
+import torch
 
 from usplat_dr.data.synth.textures import random_texture_spec
+from usplat_dr.geometry.cameras import look_at
 
 KINDS = ("indoor", "outdoor", "object")
 SPEC_VERSION = 1
@@ -51,17 +53,10 @@ def rotate(axis, degrees) -> np.ndarray:
 
 
 def look_at_np(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
-    """OpenCV camera-to-world looking from ``eye`` at ``target`` (numpy twin of
-    ``usplat_dr.geometry.cameras.look_at``)."""
-    eye, target, up = (np.asarray(v, dtype=float) for v in (eye, target, up))
-    fwd = target - eye
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(-up, fwd)
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, down, fwd, eye
-    return m
+    """OpenCV camera-to-world looking from ``eye`` at ``target`` (``geometry.cameras.look_at``
+    on numpy arrays, float64)."""
+    eye, target, up = (torch.tensor(np.asarray(v, dtype=np.float64)) for v in (eye, target, up))
+    return look_at(eye, target, up).numpy()
 
 
 def _mat(rng: np.random.Generator, p_plain: float, p_glossy: float) -> dict:

@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from usplat_dr.data.synth.render import GLOSSY, PLAIN
+from usplat_dr.geometry.cameras import pixel_directions
 
 SPLITS = ("standard", "wide_baseline", "extrapolation", "large_rotation", "disocclusion",
           "textureless", "glossy")
@@ -40,10 +41,8 @@ def disoccluded_fraction(target: int, contexts: list[int], c2w: np.ndarray, intr
     hit = np.isfinite(d)
     if not hit.any():
         return 0.0
-    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    x = (jj / w - intr[0, 2]) / intr[0, 0] * d
-    y = (ii / h - intr[1, 2]) / intr[1, 1] * d
-    p_cam = np.stack([x, y, d, np.ones_like(d)], -1)[hit]  # [N, 4]
+    p_cam = np.concatenate([pixel_directions(intr, (h, w)) * d[..., None],
+                            np.ones((h, w, 1))], -1)[hit]  # [N, 4]
     p_world = p_cam @ c2w[target].T
     seen = np.zeros(len(p_world), dtype=bool)
     for c in contexts:
