@@ -2,6 +2,7 @@
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -23,7 +24,8 @@ def _synth(args) -> int:
     summary = synthesize(Path(args.out), scenes=args.scenes, frames=args.frames,
                          resolution=tuple(args.resolution), seed=args.seed,
                          kinds=tuple(args.kind), spp=args.spp, backend=args.backend,
-                         stage=args.stage, previews=args.previews, progress=not args.quiet)
+                         stage=args.stage, previews=args.previews, progress=not args.quiet,
+                         jobs=args.jobs or min(os.cpu_count() or 1, max(1, args.scenes // 4)))
     dt = time.perf_counter() - t0
     print(f"wrote {args.scenes} scenes x {args.frames} frames to {args.out} in {dt:.1f} s "
           f"({60 * args.scenes / dt:.1f} scenes/min)")
@@ -113,6 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stage", default="test", choices=["train", "test"],
                    help="stage folder to write")
     p.add_argument("--previews", type=int, default=8, help="scenes to write preview PNGs for")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="worker processes rendering scenes in parallel (0: one per core, at "
+                   "most one per 4 scenes; the bytes written do not depend on it)")
     p.set_defaults(func=_synth)
 
     p = sub.add_parser("fit", help="per-scene Gaussian optimisation on a synthetic scene "
@@ -138,8 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "synth":
         if args.scenes < 1 or args.frames < 3:
             parser.error("--scenes must be >= 1 and --frames >= 3")
-        if min(args.resolution) < 4 or args.spp < 1:
-            parser.error("--resolution must be at least 4 4 and --spp >= 1")
+        if min(args.resolution) < 4 or args.spp < 1 or args.jobs < 0:
+            parser.error("--resolution must be at least 4 4, --spp >= 1 and --jobs >= 0")
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="%(message)s")
     return args.func(args)

@@ -66,13 +66,37 @@ def _preview(path: Path, images: np.ndarray, depths: np.ndarray) -> None:
     save_png(path, np.concatenate([top, bottom], 0))
 
 
+def _render_scene(job: tuple) -> tuple:
+    """``render_spec`` of one scene (a top-level function, so worker processes can run it).
+    Only arrays come back: the records are built from this process's own descriptions, so
+    the pickled chunk does not depend on which process rendered (pickle's sharing of equal
+    strings does)."""
+    spec, resolution, spp, seed, backend = job
+    return render_spec(spec, resolution, spp=spp, seed=seed, backend=backend)
+
+
+def _rendered(jobs_list: list[tuple], jobs: int):
+    """Rendered scenes in order, from this process or from ``jobs`` worker processes."""
+    if jobs <= 1 or len(jobs_list) <= 1:
+        yield from map(_render_scene, jobs_list)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawn: a forked Dr.Jit/Mitsuba runtime (threads, JIT state) is not safe to reuse.
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield from pool.map(_render_scene, jobs_list)
+
+
 def synthesize(out: str | os.PathLike, scenes: int, frames: int,
                resolution: tuple[int, int], seed: int = 0, kinds: tuple[str, ...] = KINDS,
                spp: int = 64, backend: str = "llvm", stage: str = "test",
-               previews: int = 8, progress: bool = True) -> dict:
+               previews: int = 8, progress: bool = True, jobs: int = 1) -> dict:
     """Render ``scenes`` procedural scenes of ``frames`` frames each (kinds round-robin) and
     write them as a dataset under ``out``. Deterministic: the same arguments give the same
-    bytes. Returns the split summary (split -> number of scenes in it).
+    bytes on the LLVM backend, for any ``jobs`` (scenes rendered by that many worker
+    processes; Mitsuba keeps about one core busy on small images, so processes are what
+    scales). Returns the split summary (split -> number of scenes in it).
 
     Examples:
         >>> import tempfile
@@ -89,6 +113,8 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     for k in kinds:
         if k not in KINDS:
             raise ValueError(f"kinds must be among {KINDS}, got {k!r}")
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1 (worker processes), got {jobs}")
     out = Path(out)
     splits: dict[str, dict] = {s: {} for s in SPLITS}
     measurements = {}
@@ -97,14 +123,14 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
         from tqdm import tqdm
 
         bar = tqdm(total=scenes, desc="usplat synth", unit="scene")
+    specs = [make_spec(kinds[i % len(kinds)], scene_seed(seed, i), frames)
+             for i in range(scenes)]
+    work = [(spec, (h, w), spp, scene_seed(seed, i), backend) for i, spec in enumerate(specs)]
     with ChunkWriter(out, stage, chunk_bytes=100_000_000) as writer:
-        for i in range(scenes):
-            kind = kinds[i % len(kinds)]
-            s = scene_seed(seed, i)
+        for i, (spec, rendered) in enumerate(zip(specs, _rendered(work, jobs))):
+            images, depths, materials, intr = rendered
+            kind, s = spec["kind"], scene_seed(seed, i)
             key = f"{kind}_{seed}_{i:05d}"
-            spec = make_spec(kind, s, frames)
-            images, depths, materials, intr = render_spec(spec, (h, w), spp=spp, seed=s,
-                                                          backend=backend)
             writer.add(scene_record(key, spec, images, depths, materials, intr))
             entries, stats = scene_splits(np.asarray(spec["cameras"]["c2w"]), intr, depths,
                                           materials, np.random.default_rng(s))

@@ -105,7 +105,11 @@ def mitsuba_dict(spec: dict, resolution: tuple[int, int], spp: int, backend: str
             d[s["name"]]["bsdf"] = {"type": "twosided", "bsdf": d[s["name"]]["bsdf"]}
     for i, light in enumerate(spec["lights"]):
         if light["type"] == "area":
-            d[f"light{i}"] = {"type": "rectangle",
+            # A disk, not a rectangle: Mitsuba keeps analytic shapes in the dict's order but
+            # meshes (rectangles included) in an order that changes from run to run, and the
+            # direct integrator picks an emitter by its index, so rectangle lamps would make
+            # the noise (and the bytes written) differ between runs.
+            d[f"light{i}"] = {"type": "disk",
                               "to_world": mi.ScalarTransform4f(light["to_world"]),
                               "emitter": {"type": "area", "radiance": {
                                   "type": "rgb", "value": light["radiance"]}}}
