@@ -10,6 +10,7 @@ import usplat_dr  # noqa: F401  (chooses libLLVM before anything imports drjit)
 
 sys.path.insert(0, str(Path(__file__).parent / "render"))
 sys.path.insert(0, str(Path(__file__).parent / "data"))
+sys.path.insert(0, str(Path(__file__).parent / "fixtures"))  # deterministic_weights
 
 
 def _cuda_available() -> bool:

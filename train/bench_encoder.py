@@ -1,0 +1,102 @@
+"""Primary-network (MVSplat encoder) forward time and peak memory: 2 views at 256x256, batch 1,
+2 threads, ``inference_mode``, the RealEstate10K configuration with random weights.
+
+Each configuration runs in its own process (so its peak RSS is its own), interleaved
+``--rounds`` times; each process times ``--repeats`` forwards after one warm-up and reports the
+median wall time, process CPU time per forward and peak RSS. Baseline, measured in the same
+run: our network with the reference's plane sweep (``cost_volume_method="warp"`` with all 128
+candidates warped at once, i.e. the full warped feature volume the official code builds).
+The official code's numbers on the same kind of machine (mvsplat_facts.md sec. 2) are printed
+for reference: 4.9 s, 1.7 GiB.
+
+    python train/bench_encoder.py [--rounds 2] [--repeats 3] [--size 256]
+"""
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+
+CONFIGS = {
+    "baseline: full warped volume": {"cost_volume_method": "warp", "cost_volume_chunk": 128},
+    "ours: warp, 16-candidate chunks": {"cost_volume_method": "warp", "cost_volume_chunk": 16},
+    "ours (default): gram": {},
+}
+
+
+def child(cfg: dict, size: int, repeats: int, out: str) -> None:
+    import resource
+    import time
+
+    import torch
+
+    from usplat_dr.model import PrimaryNetwork, PrimaryNetworkCfg
+
+    torch.set_num_threads(2)
+    torch.manual_seed(0)
+    net = PrimaryNetwork(PrimaryNetworkCfg.from_dict(cfg)).eval()
+    e = torch.eye(4).repeat(1, 2, 1, 1)
+    e[0, 1, 0, 3] = 0.1
+    k = torch.tensor([[0.86, 0, 0.5], [0, 0.86, 0.5], [0, 0, 1]]).repeat(1, 2, 1, 1)
+    x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
+    args = (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2))
+    walls, cpus = [], []
+    with torch.inference_mode():
+        g = net(*args)
+        for _ in range(repeats):
+            w, c = time.perf_counter(), time.process_time()
+            g = net(*args)
+            walls.append(time.perf_counter() - w)
+            cpus.append(time.process_time() - c)
+    torch.save(g.means, out + ".means.pt")
+    with open(out, "w") as f:
+        json.dump({"wall": statistics.median(walls), "cpu": statistics.median(cpus),
+                   "rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}, f)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--child", help=argparse.SUPPRESS)  # internal: one measurement
+    ap.add_argument("--child-out", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        cfg, out = json.loads(args.child), args.child_out
+        return child(cfg, args.size, args.repeats, out)
+    import torch
+
+    results = {name: [] for name in CONFIGS}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.rounds):
+            for i, (name, cfg) in enumerate(CONFIGS.items()):
+                out = f"{tmp}/{i}.json"
+                subprocess.run([sys.executable, __file__, "--size", str(args.size),
+                                "--repeats", str(args.repeats), "--child", json.dumps(cfg),
+                                "--child-out", out], check=True)
+                with open(out) as f:
+                    results[name].append(json.load(f))
+                if r == 0:
+                    results[name][-1]["means"] = torch.load(out + ".means.pt")
+        ref_means = results["baseline: full warped volume"][0]["means"]
+        base_wall = min(x["wall"] for x in results["baseline: full warped volume"])
+        base_rss = min(x["rss_gib"] for x in results["baseline: full warped volume"])
+        print(f"encoder forward, 2 views {args.size}x{args.size}, batch 1, 2 threads, best of "
+              f"{args.rounds} processes (median of {args.repeats} forwards each)")
+        for name, runs in results.items():
+            wall = min(x["wall"] for x in runs)
+            cpu = min(x["cpu"] for x in runs)
+            rss = min(x["rss_gib"] for x in runs)
+            diff = (runs[0]["means"] - ref_means).abs().max().item()
+            print(f"{name:32s} wall {wall:5.2f} s ({wall / base_wall:4.2f}x)  cpu {cpu:5.2f} s  "
+                  f"peak RSS {rss:4.2f} GiB ({rss / base_rss:4.2f}x)  "
+                  f"max |means - baseline| {diff:.2g}")
+        print("official MVSplat code (mvsplat_facts.md, same kind of machine): 4.9 s, 1.7 GiB; "
+              "target <= 4.0 s and <= 1.0 GiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,174 @@
+"""The primary network: an MVSplat-equivalent encoder (``EncoderCostVolume``) that loads the
+official checkpoints strictly and computes the same Gaussians."""
+
+from dataclasses import dataclass, fields, replace
+from math import lcm
+
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from usplat_dr.model.encoder.backbone import BackboneMultiview
+from usplat_dr.model.encoder.depth_predictor import DepthOutputs, DepthPredictorMultiView
+from usplat_dr.model.gaussian_adapter import GaussianAdapter
+from usplat_dr.model.types import Gaussians
+
+
+@dataclass(frozen=True)
+class PrimaryNetworkCfg:
+    """MVSplat's encoder settings; the defaults are its RealEstate10K configuration
+    (``+experiment=re10k``; ACID and DTU use the same architecture)."""
+
+    d_feature: int = 128
+    downscale_factor: int = 4  # the CNN's 1/4 resolution; fixed by its layout
+    num_transformer_layers: int = 6
+    ffn_expansion: int = 4
+    multiview_trans_attn_split: int = 2
+    num_depth_candidates: int = 128
+    costvolume_unet_feat_dim: int = 128
+    costvolume_unet_channel_mult: tuple[int, ...] = (1, 1, 1)
+    costvolume_unet_attn_res: tuple[int, ...] = (4,)
+    depth_unet_feat_dim: int = 32
+    depth_unet_channel_mult: tuple[int, ...] = (1, 1, 1, 1, 1)
+    depth_unet_attn_res: tuple[int, ...] = (16,)
+    gaussians_per_pixel: int = 1
+    sh_degree: int = 4
+    gaussian_scale_min: float = 0.5
+    gaussian_scale_max: float = 15.0
+    # Opacity mapping 0.5 (1 - (1-p)^e + p^(1/e)), e = 2^x, x from initial to final over
+    # warm_up steps; MVSplat ships 0/0, i.e. opacity = density.
+    opacity_mapping: tuple[float, float, int] = (0.0, 0.0, 1)
+    # Ablation switches (MVSplat sec. 4.3). Our layouts: a switched-off part has no keys and the
+    # remaining shapes are unchanged; MVSplat's own ablation checkpoints are not supported.
+    use_cross_view_attention: bool = True  # False: the transformer's cross layer sees its view
+    use_cost_volume: bool = True  # False: zero correlation, features only
+    use_cost_volume_refine: bool = True  # False: only the 1x1 skip refines the cost volume
+    use_depth_refine: bool = True  # False: the heads take proj_feature instead of the U-Net
+    # How the plane sweep is computed (same numbers to float32 rounding): "gram" from
+    # pixel-pair dot products (fast), "warp" by warping features like the reference, in
+    # chunks of cost_volume_chunk depth candidates (memory).
+    cost_volume_method: str = "gram"
+    cost_volume_chunk: int = 16
+
+    def __post_init__(self):
+        for name in ("d_feature", "num_transformer_layers", "num_depth_candidates",
+                     "costvolume_unet_feat_dim", "depth_unet_feat_dim", "gaussians_per_pixel",
+                     "multiview_trans_attn_split", "cost_volume_chunk"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.downscale_factor != 4:
+            raise ValueError(f"downscale_factor must be 4 (the CNN's layout), got "
+                             f"{self.downscale_factor}")
+        if self.cost_volume_method not in ("gram", "warp"):
+            raise ValueError(f"cost_volume_method must be 'gram' or 'warp', got "
+                             f"{self.cost_volume_method!r}")
+        if not 0 <= self.sh_degree <= 4:
+            raise ValueError(f"sh_degree must be in 0..4, got {self.sh_degree}")
+        if self.depth_unet_feat_dim % 4 or self.costvolume_unet_feat_dim % 8:
+            raise ValueError("depth_unet_feat_dim must be a multiple of 4 and "
+                             "costvolume_unet_feat_dim a multiple of 8 (GroupNorm groups)")
+
+    @property
+    def image_multiple(self) -> int:
+        """Image height and width must be multiples of this (U-Net levels, attention windows)."""
+        cv = 4 * 2 ** (len(self.costvolume_unet_channel_mult) - 1)
+        refine = 2 ** (len(self.depth_unet_channel_mult) - 1) if self.use_depth_refine else 1
+        return lcm(cv, refine, 8 * self.multiview_trans_attn_split)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PrimaryNetworkCfg":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown PrimaryNetworkCfg keys {unknown}; known: {sorted(known)}")
+        tuples = {k: tuple(v) for k, v in d.items() if isinstance(v, list)}
+        return replace(cls(), **{**d, **tuples})
+
+
+class PrimaryNetwork(nn.Module):
+    """MVSplat's encoder. ``forward(images, intrinsics, extrinsics, near, far) -> Gaussians``.
+
+    State-dict keys are MVSplat's with the ``encoder.`` prefix stripped (471 keys for the
+    default configuration). Build from a checkpoint with ``from_mvsplat_checkpoint``.
+
+    Examples:
+        >>> import torch
+        >>> net = PrimaryNetwork().eval()
+        >>> sum(p.numel() for p in net.parameters())
+        11955734
+        >>> e = torch.eye(4).repeat(1, 2, 1, 1); e[0, 1, 0, 3] = 0.1
+        >>> k = torch.tensor([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1]]).repeat(1, 2, 1, 1)
+        >>> with torch.no_grad():
+        ...     g = net(torch.rand(1, 2, 3, 32, 32), k, e, torch.ones(1, 2), 100 * torch.ones(1, 2))
+        >>> g.means.shape, g.harmonics.shape
+        (torch.Size([1, 2048, 3]), torch.Size([1, 2048, 3, 25]))
+    """
+
+    def __init__(self, config: PrimaryNetworkCfg | None = None):
+        super().__init__()
+        cfg = config or PrimaryNetworkCfg()
+        self.cfg = cfg
+        self.backbone = BackboneMultiview(cfg.d_feature, cfg.num_transformer_layers,
+                                          cfg.ffn_expansion, cfg.use_cross_view_attention)
+        self.depth_predictor = DepthPredictorMultiView(cfg)
+        self.gaussian_adapter = GaussianAdapter(cfg.sh_degree, cfg.gaussian_scale_min,
+                                                cfg.gaussian_scale_max)
+
+    @classmethod
+    def from_mvsplat_checkpoint(cls, checkpoint, config: PrimaryNetworkCfg | None = None,
+                                map_location="cpu") -> "PrimaryNetwork":
+        """Build the network and load an official MVSplat checkpoint (a path to a Lightning
+        ``.ckpt``, such a dict, or a bare state dict, with or without ``encoder.``) strictly."""
+        from usplat_dr.model.checkpoint import load_mvsplat_state_dict
+
+        net = cls(config)
+        load_mvsplat_state_dict(net, checkpoint, map_location=map_location)
+        return net
+
+    def opacity_exponent(self, global_step: int) -> float:
+        x0, x1, warm_up = self.cfg.opacity_mapping
+        x = x0 + min(global_step / warm_up, 1) * (x1 - x0)
+        return 2.0**x
+
+    def check_inputs(self, images, intrinsics, extrinsics, near, far) -> None:
+        if images.ndim != 5 or images.shape[2] != 3:
+            raise ValueError(f"images must have shape [B, V, 3, H, W], got {tuple(images.shape)}")
+        b, v, _, h, w = images.shape
+        if v < 2:
+            raise ValueError(f"images must hold >= 2 context views, got {v}")
+        m = self.cfg.image_multiple
+        if h % m or w % m:
+            raise ValueError(f"images height and width must be multiples of {m}, got {h}x{w}; "
+                             f"centre-crop them (usplat_dr.data.shims.rescale_and_crop)")
+        for name, t, shape in (("intrinsics", intrinsics, (b, v, 3, 3)),
+                               ("extrinsics", extrinsics, (b, v, 4, 4)),
+                               ("near", near, (b, v)), ("far", far, (b, v))):
+            if tuple(t.shape) != shape:
+                raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
+
+    def encode(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
+               extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+               far: Float[Tensor, "b v"]) -> tuple[Tensor, Tensor, DepthOutputs]:
+        """Backbone and depth predictor: (transformer features, CNN features, depth outputs)."""
+        self.check_inputs(images, intrinsics, extrinsics, near, far)
+        trans, cnn = self.backbone(images, self.cfg.multiview_trans_attn_split)
+        out = self.depth_predictor(trans, cnn, images, intrinsics, extrinsics, near, far)
+        return trans, cnn, out
+
+    def gaussians_from(self, depth: DepthOutputs, extrinsics: Tensor, intrinsics: Tensor,
+                       image_shape: tuple[int, int], global_step: int = 0) -> Gaussians:
+        """The Gaussian adapter on the depth predictor's outputs."""
+        e = self.opacity_exponent(global_step)
+        p = depth.densities
+        opacities = 0.5 * (1 - (1 - p) ** e + p ** (1 / e)) / self.cfg.gaussians_per_pixel
+        gaussians, _ = self.gaussian_adapter(extrinsics, intrinsics, depth.raw_gaussians,
+                                             depth.depths, opacities, image_shape)
+        return gaussians
+
+    def forward(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
+                extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+                far: Float[Tensor, "b v"], global_step: int = 0) -> Gaussians:
+        """Gaussians of the context views: images in [0, 1], intrinsics normalised, extrinsics
+        camera-to-world (OpenCV), near/far per view."""
+        _, _, depth = self.encode(images, intrinsics, extrinsics, near, far)
+        return self.gaussians_from(depth, extrinsics, intrinsics, tuple(images.shape[-2:]),
+                                   global_step)

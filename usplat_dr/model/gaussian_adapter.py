@@ -1,0 +1,100 @@
+"""MVSplat's Gaussian adapter: raw head outputs + depths -> world-space Gaussians
+(``src/model/encoder/common/gaussian_adapter.py``, ``encoder_costvolume.py``).
+
+Kept on purpose, to reproduce official checkpoints: the predicted depth is a distance along the
+unit-length ray (pixelSplat's convention), not camera z; scales are in pixel footprints at that
+distance; the SH mask damps degree l by 0.1 * 0.25^l.
+"""
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from usplat_dr.model.sh_rotation import rotate_sh
+from usplat_dr.model.types import Gaussians
+
+
+def quaternion_to_matrix(q: Float[Tensor, "*batch 4"], eps: float = 1e-8
+                         ) -> Float[Tensor, "*batch 3 3"]:
+    """pytorch3d's formula with xyzw quaternions and ``two_s = 2 / (|q|^2 + eps)``."""
+    i, j, k, r = torch.unbind(q, dim=-1)
+    two_s = 2 / ((q * q).sum(dim=-1) + eps)
+    o = torch.stack((1 - two_s * (j * j + k * k), two_s * (i * j - k * r), two_s * (i * k + j * r),
+                     two_s * (i * j + k * r), 1 - two_s * (i * i + k * k), two_s * (j * k - i * r),
+                     two_s * (i * k - j * r), two_s * (j * k + i * r), 1 - two_s * (i * i + j * j)),
+                    dim=-1)
+    return o.unflatten(-1, (3, 3))
+
+
+def pixel_centres(h: int, w: int, device=None) -> Float[Tensor, "hw 2"]:
+    """Normalised pixel centres ((x + 0.5) / w, (y + 0.5) / h), raster order."""
+    ys, xs = torch.meshgrid((torch.arange(h, device=device) + 0.5) / h,
+                            (torch.arange(w, device=device) + 0.5) / w, indexing="ij")
+    return torch.stack([xs, ys], dim=-1).view(-1, 2)
+
+
+def sh_mask(d_sh: int) -> Tensor:
+    """1 for degree 0, 0.1 * 0.25^l for degree l (MVSplat's ``sh_mask``)."""
+    mask = torch.ones(d_sh)
+    degree = int(d_sh**0.5) - 1
+    for deg in range(1, degree + 1):
+        mask[deg * deg:(deg + 1) ** 2] = 0.1 * 0.25**deg
+    return mask
+
+
+class GaussianAdapter(nn.Module):
+    def __init__(self, sh_degree: int = 4, scale_min: float = 0.5, scale_max: float = 15.0):
+        super().__init__()
+        self.d_sh = (sh_degree + 1) ** 2
+        self.scale_min, self.scale_max = scale_min, scale_max
+        self.register_buffer("sh_mask", sh_mask(self.d_sh), persistent=False)
+
+    def forward(self, extrinsics: Float[Tensor, "b v 4 4"], intrinsics: Float[Tensor, "b v 3 3"],
+                raw: Float[Tensor, "b v r c"], depths: Float[Tensor, "b v r 1 g"],
+                opacities: Float[Tensor, "b v r 1 g"], image_shape: tuple[int, int]
+                ) -> tuple[Gaussians, Tensor]:
+        """Gaussians, and the normalised image coordinates of their centres [B, V, R, 2].
+
+        ``raw`` channels: 0:2 xy-offset logits, 2:5 scale logits, 5:9 xyzw quaternion, then
+        3 * d_sh SH coefficients colour-major."""
+        h, w = image_shape
+        b, v, r, _ = raw.shape
+        gpp = depths.shape[-1]
+        pixel = torch.tensor([1.0 / w, 1.0 / h], dtype=torch.float32, device=raw.device)
+        xy = pixel_centres(h, w, raw.device) + (raw[..., :2].sigmoid() - 0.5) * pixel  # [B,V,R,2]
+        scales_raw, quats, sh = raw[..., 2:].split((3, 4, 3 * self.d_sh), dim=-1)
+        scales = self.scale_min + (self.scale_max - self.scale_min) * scales_raw.sigmoid()
+        kinv = intrinsics[..., :2, :2].inverse()
+        multiplier = (0.1 * torch.einsum("...ij,j->...i", kinv, pixel)).sum(-1)  # [B, V]
+        d = depths.squeeze(3)  # [B, V, R, G]
+        scales = scales[..., None, :] * d[..., None] * multiplier[:, :, None, None, None]
+        rotations = quats / (quats.norm(dim=-1, keepdim=True) + 1e-8)
+        rotations = rotations[..., None, :].expand(b, v, r, gpp, 4)
+        sh = sh.unflatten(-1, (3, self.d_sh)) * self.sh_mask  # [B, V, R, 3, d_sh]
+
+        # Covariance R S S^T R^T in the camera frame, then rotated to the world.
+        rq = quaternion_to_matrix(rotations)
+        s = scales.diag_embed()
+        cov = rq @ s @ s.transpose(-1, -2) @ rq.transpose(-1, -2)
+        c2w = extrinsics[..., :3, :3][:, :, None, None]  # [B, V, 1, 1, 3, 3]
+        cov = c2w @ cov @ c2w.transpose(-1, -2)
+
+        # Means along the unit ray through the (offset) pixel.
+        homo = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)
+        dirs = torch.einsum("bvij,bvrj->bvri", intrinsics.inverse(), homo)
+        dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+        dirs = torch.cat([dirs, torch.zeros_like(dirs[..., :1])], dim=-1)
+        dirs = torch.einsum("bvij,bvrj->bvri", extrinsics, dirs)[..., :3]
+        origins = extrinsics[..., :3, 3][:, :, None, None]
+        means = origins + dirs[:, :, :, None] * d[..., None]  # [B, V, R, G, 3]
+
+        # SH rotated camera -> world: one Wigner-D per view, shared by its Gaussians.
+        harmonics = rotate_sh(sh, extrinsics[:, :, None, None, :3, :3])
+        harmonics = harmonics[:, :, :, None].expand(b, v, r, gpp, 3, self.d_sh)
+
+        def flat(t):  # "b v r g ... -> b (v r g) ..."
+            return t.reshape(b, v * r * gpp, *t.shape[4:])
+
+        return Gaussians(means=flat(means), covariances=flat(cov), harmonics=flat(harmonics),
+                         opacities=opacities.reshape(b, v * r * gpp), scales=flat(scales),
+                         rotations=flat(rotations)), xy
