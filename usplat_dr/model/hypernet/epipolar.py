@@ -1,0 +1,107 @@
+"""Proj(F_c, P_c, P_t) of UniqueSplat's view-specific branch: context features gathered along
+each target ray's epipolar lines and fused by cross-view cosine correlation.
+
+Our reading of the paper (see ../shared/reference/uniquesplat_paper.md): for every pixel of a
+reduced target grid, the ray x(z) = o + z r (r = R_t K_t^-1 [u, v, 1], so z is the target
+camera's depth) is sampled at ``n`` depths between near and far (uniform in inverse depth, as
+MVSplat's candidates: uniform in depth would put almost every sample near ``far`` for RE10K's
+1..100). Each sample is projected into every context view (P = K [R | t]) and the context
+features are sampled bilinearly there; samples behind a camera or outside its image are
+invalid. The cosine similarity of the views' features at a sample (mean over view pairs)
+measures photo-consistency; a softmax over the samples of ray (temperature learnable) weights
+the views' mean feature into the target feature.
+"""
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Bool, Float
+from torch import Tensor, nn
+
+
+def target_rays(intrinsics: Float[Tensor, "b n 3 3"], extrinsics: Float[Tensor, "b n 4 4"],
+                grid: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """Origins [B, N, 1, 3] and directions [B, N, P, 3] (P = gh * gw pixel centres of a
+    ``grid`` over the image, raster order) scaled so that o + z d has camera depth z."""
+    gh, gw = grid
+    ys, xs = torch.meshgrid((torch.arange(gh, device=intrinsics.device) + 0.5) / gh,
+                            (torch.arange(gw, device=intrinsics.device) + 0.5) / gw,
+                            indexing="ij")
+    pix = torch.stack([xs, ys, torch.ones_like(xs)], -1).view(-1, 3)  # normalised coords
+    cam = torch.einsum("bnij,pj->bnpi", intrinsics.inverse(), pix)  # z = 1
+    dirs = torch.einsum("bnij,bnpj->bnpi", extrinsics[..., :3, :3], cam)
+    return extrinsics[..., None, :3, 3], dirs
+
+
+def sample_depths(near: Float[Tensor, "b n"], far: Float[Tensor, "b n"], num: int
+                  ) -> Float[Tensor, "b n s"]:
+    """``num`` depths uniform in inverse depth, far to near."""
+    t = torch.linspace(0.0, 1.0, num, device=near.device)
+    disp = 1 / far[..., None] + t * (1 / near[..., None] - 1 / far[..., None])
+    return 1 / disp
+
+
+def project(points: Float[Tensor, "b n p s 3"], intrinsics: Float[Tensor, "b v 3 3"],
+            extrinsics: Float[Tensor, "b v 4 4"]) -> tuple[Tensor, Tensor]:
+    """Normalised image coordinates [B, N, V, P, S, 2] of world points in each context view,
+    and validity [B, N, V, P, S] (in front of the camera and inside the image)."""
+    w2c = extrinsics.inverse()
+    cam = (torch.einsum("bvij,bnpsj->bnvpsi", w2c[..., :3, :3], points)
+           + w2c[:, None, :, None, None, :3, 3])
+    z = cam[..., 2:]
+    img = torch.einsum("bvij,bnvpsj->bnvpsi", intrinsics, cam / z.clamp(min=1e-6))[..., :2]
+    valid = (z[..., 0] > 1e-6) & (img >= 0).all(-1) & (img <= 1).all(-1)
+    return img, valid
+
+
+def cosine_correlation(samples: Float[Tensor, "b n v c p s"], valid: Bool[Tensor, "b n v p s"]
+                       ) -> Float[Tensor, "b n p s"]:
+    """Mean over context-view pairs of the cosine similarity of their features at each sample
+    (0 where either is invalid)."""
+    unit = F.normalize(samples, dim=3)
+    v = samples.shape[2]
+    total, count = 0, 0
+    for i in range(v):
+        for j in range(i + 1, v):
+            both = valid[:, :, i] & valid[:, :, j]
+            total = total + (unit[:, :, i] * unit[:, :, j]).sum(2) * both
+            count = count + both.float()
+    return total / count.clamp(min=1) if v > 1 else torch.zeros_like(valid[:, :, 0]).float()
+
+
+class EpipolarProjection(nn.Module):
+    """F_t = Proj(F_c, P_c, P_t) on a ``grid`` target grid with ``num_samples`` per ray."""
+
+    def __init__(self, num_samples: int = 32, grid: tuple[int, int] = (32, 32),
+                 temperature: float = 10.0):
+        super().__init__()
+        self.num_samples, self.grid = num_samples, tuple(grid)
+        self.log_temperature = nn.Parameter(torch.tensor(float(temperature)).log())
+
+    def forward(self, features: Float[Tensor, "b v c h w"],
+                intrinsics: Float[Tensor, "b v 3 3"], extrinsics: Float[Tensor, "b v 4 4"],
+                target_intrinsics: Float[Tensor, "b n 3 3"],
+                target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
+                target_far: Float[Tensor, "b n"]) -> tuple[Tensor, dict]:
+        """Target features [B, N, C, gh, gw] and ``aux`` (``correlation`` and ``weights``
+        [B, N, P, S], ``depths`` [B, N, S])."""
+        b, v, c, h, w = features.shape
+        n = target_intrinsics.shape[1]
+        gh, gw = self.grid
+        origins, dirs = target_rays(target_intrinsics, target_extrinsics, self.grid)
+        depths = sample_depths(target_near, target_far, self.num_samples)  # [B, N, S]
+        points = origins[..., None, :] + dirs[..., None, :] * depths[:, :, None, :, None]
+        xy, valid = project(points, intrinsics, extrinsics)  # [B, N, V, P, S, 2]
+        p, s = points.shape[2], points.shape[3]
+        grid = (2 * xy - 1).permute(0, 2, 1, 3, 4, 5).reshape(b * v, n * p, s, 2)
+        sampled = F.grid_sample(features.reshape(b * v, c, h, w), grid, mode="bilinear",
+                                padding_mode="zeros", align_corners=False)  # [BV, C, NP, S]
+        sampled = sampled.view(b, v, c, n, p, s).permute(0, 3, 1, 2, 4, 5)  # [B, N, V, C, P, S]
+        corr = cosine_correlation(sampled, valid)
+        any_valid = valid.any(2)  # [B, N, P, S]
+        logits = (self.log_temperature.exp() * corr).masked_fill(~any_valid, -1e4)
+        weights = torch.softmax(logits, dim=-1)
+        vmask = valid[:, :, :, None].float()  # [B, N, V, 1, P, S]
+        mean = (sampled * vmask).sum(2) / vmask.sum(2).clamp(min=1)  # [B, N, C, P, S]
+        fused = (mean * weights[:, :, None]).sum(-1)  # [B, N, C, P]
+        return fused.view(b, n, c, gh, gw), {"correlation": corr, "weights": weights,
+                                              "depths": depths, "valid": valid}
