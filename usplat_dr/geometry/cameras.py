@@ -43,6 +43,19 @@ def look_at(
     return c2w
 
 
+def pixel_centres(h: int, w: int, device=None) -> Float[Tensor, "hw 2"]:
+    """Normalised image coordinates ((x + 0.5) / w, (y + 0.5) / h) of the pixel centres of an
+    h x w grid, raster order (pixelSplat's ``sample_image_grid``).
+
+    Examples:
+        >>> pixel_centres(1, 2).tolist()
+        [[0.25, 0.5], [0.75, 0.5]]
+    """
+    ys, xs = torch.meshgrid((torch.arange(h, device=device) + 0.5) / h,
+                            (torch.arange(w, device=device) + 0.5) / w, indexing="ij")
+    return torch.stack([xs, ys], dim=-1).view(-1, 2)
+
+
 def normalized_intrinsics(
     fx: float, fy: float, cx: float = 0.5, cy: float = 0.5, batch: tuple[int, ...] = ()
 ) -> Float[Tensor, "*batch 3 3"]:

@@ -10,27 +10,10 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.geometry.cameras import pixel_centres
+from usplat_dr.geometry.quaternions import quat_xyzw_to_matrix
 from usplat_dr.model.sh_rotation import rotate_sh
 from usplat_dr.model.types import Gaussians
-
-
-def quaternion_to_matrix(q: Float[Tensor, "*batch 4"], eps: float = 1e-8
-                         ) -> Float[Tensor, "*batch 3 3"]:
-    """pytorch3d's formula with xyzw quaternions and ``two_s = 2 / (|q|^2 + eps)``."""
-    i, j, k, r = torch.unbind(q, dim=-1)
-    two_s = 2 / ((q * q).sum(dim=-1) + eps)
-    o = torch.stack((1 - two_s * (j * j + k * k), two_s * (i * j - k * r), two_s * (i * k + j * r),
-                     two_s * (i * j + k * r), 1 - two_s * (i * i + k * k), two_s * (j * k - i * r),
-                     two_s * (i * k - j * r), two_s * (j * k + i * r), 1 - two_s * (i * i + j * j)),
-                    dim=-1)
-    return o.unflatten(-1, (3, 3))
-
-
-def pixel_centres(h: int, w: int, device=None) -> Float[Tensor, "hw 2"]:
-    """Normalised pixel centres ((x + 0.5) / w, (y + 0.5) / h), raster order."""
-    ys, xs = torch.meshgrid((torch.arange(h, device=device) + 0.5) / h,
-                            (torch.arange(w, device=device) + 0.5) / w, indexing="ij")
-    return torch.stack([xs, ys], dim=-1).view(-1, 2)
 
 
 def sh_mask(d_sh: int) -> Tensor:
@@ -68,12 +51,13 @@ class GaussianAdapter(nn.Module):
         multiplier = (0.1 * torch.einsum("...ij,j->...i", kinv, pixel)).sum(-1)  # [B, V]
         d = depths.squeeze(3)  # [B, V, R, G]
         scales = scales[..., None, :] * d[..., None] * multiplier[:, :, None, None, None]
-        rotations = quats / (quats.norm(dim=-1, keepdim=True) + 1e-8)
-        rotations = rotations[..., None, :].expand(b, v, r, gpp, 4)
+        rotations = quats / (quats.norm(dim=-1, keepdim=True) + 1e-8)  # [B, V, R, 4]
         sh = sh.unflatten(-1, (3, self.d_sh)) * self.sh_mask  # [B, V, R, 3, d_sh]
 
-        # Covariance R S S^T R^T in the camera frame, then rotated to the world.
-        rq = quaternion_to_matrix(rotations)
+        # Covariance R S S^T R^T in the camera frame (one R per pixel, shared by its
+        # Gaussians), then rotated to the world.
+        rq = quat_xyzw_to_matrix(rotations)[:, :, :, None]  # [B, V, R, 1, 3, 3]
+        rotations = rotations[..., None, :].expand(b, v, r, gpp, 4)
         s = scales.diag_embed()
         cov = rq @ s @ s.transpose(-1, -2) @ rq.transpose(-1, -2)
         c2w = extrinsics[..., :3, :3][:, :, None, None]  # [B, V, 1, 1, 3, 3]

@@ -95,8 +95,8 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     """Render ``scenes`` procedural scenes of ``frames`` frames each (kinds round-robin) and
     write them as a dataset under ``out``. Deterministic: the same arguments give the same
     bytes on the LLVM backend, for any ``jobs`` (scenes rendered by that many worker
-    processes; Mitsuba keeps about one core busy on small images, so processes are what
-    scales). Returns the split summary (split -> number of scenes in it).
+    processes, for machines where one Mitsuba process does not keep every core busy).
+    Returns the split summary (split -> number of scenes in it).
 
     Examples:
         >>> import tempfile
@@ -123,13 +123,13 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
         from tqdm import tqdm
 
         bar = tqdm(total=scenes, desc="usplat synth", unit="scene")
-    specs = [make_spec(kinds[i % len(kinds)], scene_seed(seed, i), frames)
-             for i in range(scenes)]
-    work = [(spec, (h, w), spp, scene_seed(seed, i), backend) for i, spec in enumerate(specs)]
+    seeds = [scene_seed(seed, i) for i in range(scenes)]
+    specs = [make_spec(kinds[i % len(kinds)], s, frames) for i, s in enumerate(seeds)]
+    work = [(spec, (h, w), spp, s, backend) for spec, s in zip(specs, seeds)]
     with ChunkWriter(out, stage, chunk_bytes=100_000_000) as writer:
-        for i, (spec, rendered) in enumerate(zip(specs, _rendered(work, jobs))):
+        for i, (spec, s, rendered) in enumerate(zip(specs, seeds, _rendered(work, jobs))):
             images, depths, materials, intr = rendered
-            kind, s = spec["kind"], scene_seed(seed, i)
+            kind = spec["kind"]
             key = f"{kind}_{seed}_{i:05d}"
             writer.add(scene_record(key, spec, images, depths, materials, intr))
             entries, stats = scene_splits(np.asarray(spec["cameras"]["c2w"]), intr, depths,

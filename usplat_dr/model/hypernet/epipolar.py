@@ -17,16 +17,15 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Float
 from torch import Tensor, nn
 
+from usplat_dr.geometry.cameras import pixel_centres
+
 
 def target_rays(intrinsics: Float[Tensor, "b n 3 3"], extrinsics: Float[Tensor, "b n 4 4"],
                 grid: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """Origins [B, N, 1, 3] and directions [B, N, P, 3] (P = gh * gw pixel centres of a
     ``grid`` over the image, raster order) scaled so that o + z d has camera depth z."""
-    gh, gw = grid
-    ys, xs = torch.meshgrid((torch.arange(gh, device=intrinsics.device) + 0.5) / gh,
-                            (torch.arange(gw, device=intrinsics.device) + 0.5) / gw,
-                            indexing="ij")
-    pix = torch.stack([xs, ys, torch.ones_like(xs)], -1).view(-1, 3)  # normalised coords
+    xy = pixel_centres(*grid, intrinsics.device)
+    pix = torch.cat([xy, torch.ones_like(xy[:, :1])], -1)  # normalised homogeneous coords
     cam = torch.einsum("bnij,pj->bnpi", intrinsics.inverse(), pix)  # z = 1
     dirs = torch.einsum("bnij,bnpj->bnpi", extrinsics[..., :3, :3], cam)
     return extrinsics[..., None, :3, 3], dirs
