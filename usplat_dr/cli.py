@@ -72,6 +72,23 @@ def _fit(args) -> int:
     return 0
 
 
+def _params(args) -> int:
+    from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, UniqueSplat
+
+    logging.getLogger("usplat_dr.model.hypernet.resnet").setLevel(logging.ERROR)
+    variants = ["baseline", "agnostic", "full"] if args.variant == "all" else [args.variant]
+    for variant in variants:
+        model = UniqueSplat.from_preset(args.preset, variant=variant)
+        print(f"preset {args.preset!r}, variant {variant!r}")
+        for name, count in model.parameter_table():
+            print(f"  {name:<62} {count:>12,}")
+        total = model.parameter_table()[-1][1]
+        if args.preset == "paper" and variant == "full":
+            print(f"  {'paper (UniqueSplat, full model)':<62} {PAPER_PARAMETERS:>12,.0f}"
+                  f"  ({100 * (total / PAPER_PARAMETERS - 1):+.1f}%)")
+    return 0
+
+
 def _doctor(args) -> int:
     from usplat_dr import doctor
 
@@ -96,6 +113,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                    help="cpu: Dr.Jit LLVM backend; cuda: Dr.Jit CUDA backend")
     p.set_defaults(func=_render_demo)
+
+    p = sub.add_parser("params", help="parameter count of a UniqueSplat configuration, per "
+                       "part")
+    p.add_argument("--preset", default="paper", choices=["paper", "tiny"])
+    p.add_argument("--variant", default="all", choices=["all", "baseline", "agnostic", "full"])
+    p.set_defaults(func=_params)
 
     from usplat_dr.data.synth.scenes import KINDS
 

@@ -1,7 +1,8 @@
-"""First parts of UniqueSplat's view-specific branch (issue 5, in progress): the ResNet18
+"""Parts of UniqueSplat's view-specific branch: the ResNet18
 backbone E_H and Proj (epipolar sampling with cosine-correlation fusion)."""
 
 import logging
+import math
 
 import numpy as np
 import pytest
@@ -29,6 +30,14 @@ def test_resnet18_has_torchvisions_layout(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         assert not ResNet18().load_torchvision(tmp_path / "missing.pth")
     assert "random initialisation" in caplog.text
+    # A truncated feature extractor takes its part of a full file and ignores the rest.
+    torch.save(net.state_dict(), path)
+    part = ResNet18(num_classes=None, stages=2)
+    assert part.load_torchvision(path) and not hasattr(part, "layer3") and part.fc is None
+    assert torch.equal(part.layer2[1].conv2.weight, net.layer2[1].conv2.weight)
+    x = torch.rand(1, 3, 32, 32)
+    net.eval(), part.eval()
+    assert torch.equal(part.features(x)[1], net.features(x)[1])
 
 
 def test_target_rays_project_back_to_their_pixels():
@@ -73,9 +82,9 @@ def test_highest_correlation_is_at_the_true_depth_on_a_mitsuba_scene():
     k = torch.tensor(intr, dtype=torch.float32)
     near, far = spec["near_far"]
     with torch.no_grad():
-        _, aux = EpipolarProjection(96, (64, 64))(
+        _, aux = EpipolarProjection(96)(
             patch[[0, 2]][None], k.expand(1, 2, 3, 3), c2w[[0, 2]][None], k.expand(1, 1, 3, 3),
-            c2w[[1]][None], torch.tensor([[near]]), torch.tensor([[far]]))
+            c2w[[1]][None], torch.tensor([[near]]), torch.tensor([[far]]), (64, 64))
     best = aux["depths"][0, 0][aux["correlation"][0, 0].argmax(-1)]
     gt = torch.tensor(depths[1]).view(-1)
     seen = aux["valid"][0, 0].all(0).any(-1)  # some sample of the ray is seen by both views
@@ -91,8 +100,50 @@ def test_fusion_is_differentiable_and_finite_without_overlap():
     k = torch.tensor([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1.0]]).expand(1, 2, 3, 3)
     e = torch.eye(4).repeat(1, 2, 1, 1)
     e[0, 1, :3, :3] = torch.diag(torch.tensor([-1.0, 1, -1]))  # 180 degrees about y
-    proj = EpipolarProjection(8, (4, 4))
-    out, aux = proj(f, k, e, k[:, :1], e[:, :1], torch.ones(1, 1), 10 * torch.ones(1, 1))
+    proj = EpipolarProjection(8)
+    out, aux = proj(f, k, e, k[:, :1], e[:, :1], torch.ones(1, 1), 10 * torch.ones(1, 1),
+                    (4, 4))
     assert torch.isfinite(out).all() and not aux["valid"][0, 0, 1].any()
     out.sum().backward()
     assert f.grad is not None and proj.log_temperature.grad is not None
+
+
+def pinhole(k, c2w, x):
+    """Normalised image coordinates and depth of world point ``x`` (float64, from P = K[R|t]
+    written out: x_cam = R^T (x - o))."""
+    r, o = c2w[:3, :3], c2w[:3, 3]
+    cam = r.T @ (x - o)
+    return (k @ (cam / cam[2]))[:2], cam[2]
+
+
+def test_a_point_seen_by_both_contexts_is_sampled_at_its_pixels():
+    # World point X seen by two context cameras and a rotated target camera. X's target
+    # pixel is a grid-cell centre by construction of the target intrinsics; the ray of that
+    # grid cell at X's target depth must be X, and projecting it into each context view must
+    # give X's pixel there (independent float64 pinhole above; 1e-5: float32 Proj path).
+    x = torch.tensor([0.3, -0.2, 4.0], dtype=torch.float64)
+    k = torch.tensor([[0.9, 0, 0.5], [0, 0.8, 0.5], [0, 0, 1]], dtype=torch.float64)
+
+    def cam(yaw, origin):
+        c2w = torch.eye(4, dtype=torch.float64)
+        c, s = math.cos(yaw), math.sin(yaw)
+        c2w[:3, :3] = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+        c2w[:3, 3] = torch.tensor(origin, dtype=torch.float64)
+        return c2w
+
+    contexts = torch.stack([cam(0.05, [-0.4, 0, 0]), cam(-0.05, [0.4, 0.1, 0])])
+    target = cam(0.2, [0.1, -0.05, 0.3])
+    grid = (4, 6)
+    uv, z = pinhole(k, target, x)
+    cell = torch.tensor([(3 + 0.5) / grid[1], (1 + 0.5) / grid[0]], dtype=torch.float64)
+    kt = k.clone()
+    kt[:2, 2] += cell - uv  # shift the principal point: X's pixel is the centre of cell (1, 3)
+    origins, dirs = target_rays(kt[None, None].float(), target[None, None].float(), grid)
+    point = origins[0, 0, 0] + dirs[0, 0, 1 * grid[1] + 3] * z.float()
+    assert torch.allclose(point.double(), x, atol=1e-5)
+    xy, valid = project(point.view(1, 1, 1, 1, 3), k[None].expand(1, 2, 3, 3).float(),
+                        contexts[None].float())
+    for v in range(2):
+        expected, _ = pinhole(k, contexts[v], x)
+        assert torch.allclose(xy[0, 0, v, 0, 0].double(), expected, atol=1e-5)
+        assert valid[0, 0, v, 0, 0]

@@ -1,4 +1,5 @@
-"""Torch models: the primary network (MVSplat's encoder) and its checkpoints."""
+"""Torch models: the primary network (MVSplat's encoder) and its checkpoints, and UniqueSplat
+(the primary network steered by view-agnostic and view-specific hypernetworks)."""
 
 from usplat_dr.model.checkpoint import (
     CheckpointMismatchError,
@@ -8,6 +9,13 @@ from usplat_dr.model.checkpoint import (
 )
 from usplat_dr.model.encoder import PrimaryNetwork, PrimaryNetworkCfg
 from usplat_dr.model.types import Gaussians
+from usplat_dr.model.uniquesplat import (
+    PRESETS,
+    UniqueSplat,
+    UniqueSplatCfg,
+    UniqueSplatOutput,
+)
 
-__all__ = ["CheckpointMismatchError", "Gaussians", "PrimaryNetwork", "PrimaryNetworkCfg",
+__all__ = ["PRESETS", "CheckpointMismatchError", "Gaussians", "PrimaryNetwork",
+           "PrimaryNetworkCfg", "UniqueSplat", "UniqueSplatCfg", "UniqueSplatOutput",
            "export_mvsplat_checkpoint", "load_gmdepth_backbone", "load_mvsplat_state_dict"]

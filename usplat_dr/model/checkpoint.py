@@ -57,15 +57,16 @@ def extract_state_dict(ckpt: dict) -> dict[str, Tensor]:
     return dict(sd)
 
 
-def check_state_dict(module: nn.Module, sd: dict[str, Tensor], what: str = "checkpoint"
-                     ) -> None:
+def check_state_dict(module: nn.Module | dict, sd: dict[str, Tensor],
+                     what: str = "checkpoint") -> None:
     """Raise ``CheckpointMismatchError`` unless ``sd`` has exactly ``module``'s keys and
-    shapes."""
-    own = module.state_dict()
+    shapes (``module`` may also be a dict of the expected tensors or shapes)."""
+    own = module if isinstance(module, dict) else module.state_dict()
+    own = {k: tuple(v.shape) if isinstance(v, Tensor) else tuple(v) for k, v in own.items()}
     missing = sorted(set(own) - set(sd))
     unexpected = sorted(set(sd) - set(own))
-    shapes = sorted(f"{k}: checkpoint {list(sd[k].shape)} vs network {list(own[k].shape)}"
-                    for k in set(own) & set(sd) if sd[k].shape != own[k].shape)
+    shapes = sorted(f"{k}: checkpoint {list(sd[k].shape)} vs network {list(own[k])}"
+                    for k in set(own) & set(sd) if tuple(sd[k].shape) != own[k])
     if missing or unexpected or shapes:
         def listing(name, items):
             head = "\n    ".join(items[:20])

@@ -54,14 +54,14 @@ class GaussianAdapter(nn.Module):
         rotations = quats / (quats.norm(dim=-1, keepdim=True) + 1e-8)  # [B, V, R, 4]
         sh = sh.unflatten(-1, (3, self.d_sh)) * self.sh_mask  # [B, V, R, 3, d_sh]
 
-        # Covariance R S S^T R^T in the camera frame (one R per pixel, shared by its
-        # Gaussians), then rotated to the world.
-        rq = quat_xyzw_to_matrix(rotations)[:, :, :, None]  # [B, V, R, 1, 3, 3]
+        # Covariance C R S S^T R^T C^T (C: camera-to-world rotation) = sum_k s_k^2 a_k a_k^T
+        # with a_k the k-th column of C R: one C R per pixel (shared by its Gaussians), the
+        # rest elementwise (3x3 batched matrix products are slow on the CPU).
+        rq = quat_xyzw_to_matrix(rotations)  # [B, V, R, 3, 3]
+        axes = torch.einsum("bvij,bvrjk->bvrik", extrinsics[..., :3, :3], rq)[:, :, :, None]
         rotations = rotations[..., None, :].expand(b, v, r, gpp, 4)
-        s = scales.diag_embed()
-        cov = rq @ s @ s.transpose(-1, -2) @ rq.transpose(-1, -2)
-        c2w = extrinsics[..., :3, :3][:, :, None, None]  # [B, V, 1, 1, 3, 3]
-        cov = c2w @ cov @ c2w.transpose(-1, -2)
+        scaled = axes * scales.square()[..., None, :]  # [B, V, R, G, 3, 3]: a_k s_k^2
+        cov = (scaled[..., :, None, :] * axes[..., None, :, :]).sum(-1)
 
         # Means along the unit ray through the (offset) pixel.
         homo = torch.cat([xy, torch.ones_like(xy[..., :1])], dim=-1)

@@ -95,8 +95,17 @@ def rotate_sh(sh: Float[Tensor, "*batch n"], rotation: Float[Tensor, "*#batch 3 
     degree = math.isqrt(n) - 1
     if (degree + 1) ** 2 != n:
         raise ValueError(f"sh must have (degree+1)^2 coefficients, got {n}")
-    out = []
-    for deg, d in enumerate(wigner_d(rotation, degree)):
-        out.append(torch.einsum("...ij,...j->...i", d.to(sh.dtype),
-                                sh[..., deg * deg:(deg + 1) ** 2]))
-    return torch.cat(out, dim=-1)
+    batch = sh.shape[:-1]
+    rb = (1,) * (len(batch) - (rotation.ndim - 2)) + tuple(rotation.shape[:-2])
+    # One block-diagonal D per rotation, applied to every coefficient vector that shares it
+    # by one matrix product (the rotation's trailing broadcast dimensions folded into rows).
+    k = len(rb)
+    while k > 0 and rb[k - 1] == 1:
+        k -= 1
+    lead = torch.broadcast_shapes(batch[:k], rb[:k])
+    rot = rotation.reshape(*rb, 3, 3)[(...,) + (0,) * (len(rb) - k) + (slice(None),) * 2]
+    full = rot.new_zeros(*lead, n, n, dtype=sh.dtype)
+    for deg, d in enumerate(wigner_d(rot.expand(*lead, 3, 3), degree)):
+        full[..., deg * deg:(deg + 1) ** 2, deg * deg:(deg + 1) ** 2] = d.to(sh.dtype)
+    rows = sh.expand(*lead, *batch[k:], n).reshape(*lead, -1, n)
+    return (rows @ full.transpose(-1, -2)).reshape(*lead, *batch[k:], n)

@@ -17,20 +17,24 @@ from usplat_dr.model.encoder.unet import UNet
 @dataclass
 class DepthOutputs:
     """What the depth predictor computes, (v b) order unless noted. ``depths`` and ``densities``
-    [B, V, H*W, 1, gpp]; ``raw_gaussians`` [B, V, H*W, C]; the rest are intermediates kept for
-    tests and visualisation."""
+    [B, V, H*W, 1, gpp]; ``raw_gaussians`` [B, V, H*W, C] (all three None when the heads were
+    not run); ``head_input`` (the Gaussian head's input, channels-last) and ``disp_full``
+    (coarse disparity at full resolution) are what the heads need; the rest are intermediates
+    kept for tests and visualisation."""
 
-    depths: Tensor
-    densities: Tensor
-    raw_gaussians: Tensor
+    depths: Tensor | None
+    densities: Tensor | None
+    raw_gaussians: Tensor | None
     cost_volume: Tensor
     pdf: Tensor
     coarse_disparity: Tensor
     pdf_max: Tensor
     disparity_candidates: Tensor
-    raw_to_disparity: Tensor
+    raw_to_disparity: Tensor | None
     features_fullres: Tensor  # upsampled features before proj_feature [VB, C, H, W]
     refine_out: Tensor  # input of the heads [VB, 32, H, W]
+    head_input: Tensor  # input of to_gaussians [VB, 32 + 3 + C, H, W], channels-last
+    disp_full: Tensor  # [VB, 1, H, W]
 
 
 class DepthPredictorMultiView(nn.Module):
@@ -79,10 +83,9 @@ class DepthPredictorMultiView(nn.Module):
                 cnn_features: Float[Tensor, "b v c h w"],
                 images: Float[Tensor, "b v 3 H W"], intrinsics: Float[Tensor, "b v 3 3"],
                 extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
-                far: Float[Tensor, "b v"]) -> DepthOutputs:
+                far: Float[Tensor, "b v"], run_heads: bool = True) -> DepthOutputs:
         cfg = self.cfg
         b, v, c, h, w = trans_features.shape
-        gpp = cfg.gaussians_per_pixel
         self.set_num_views(v)
         feat = trans_features.transpose(0, 1).reshape(v * b, c, h, w)
         cnn = cnn_features.transpose(0, 1).reshape(v * b, c, h, w)
@@ -121,11 +124,34 @@ class DepthPredictorMultiView(nn.Module):
         # channels_last: ~25% faster convolutions on CPU here, and it is the [.., H*W, C]
         # layout the Gaussian adapter reads anyway.
         # (One expression, so the channels-first concatenation is freed before the convs run.)
-        raw = self.to_gaussians(torch.cat((refine_out, rgb, features_full), dim=1)
-                                .contiguous(memory_format=torch.channels_last))
+        head_input = (torch.cat((refine_out, rgb, features_full), dim=1)
+                      .contiguous(memory_format=torch.channels_last))
+        out = DepthOutputs(
+            depths=None, densities=None, raw_gaussians=None, cost_volume=cost, pdf=pdf,
+            coarse_disparity=coarse, pdf_max=pdf_max, disparity_candidates=disps,
+            raw_to_disparity=None, features_fullres=features_full, refine_out=refine_out,
+            head_input=head_input, disp_full=disp_full)
+        if not run_heads:
+            return out
+        out.raw_gaussians = self.gaussians_layout(self.to_gaussians(head_input), v, b)
+        out.raw_to_disparity = self.to_disparity(refine_out)
+        out.depths, out.densities = self.depths_from(out.raw_to_disparity, disp_full, near, far)
+        return out
+
+    @staticmethod
+    def gaussians_layout(raw: Tensor, v: int, b: int) -> Tensor:
+        """Gaussian-head output [(v b), C, H, W] -> [B, V, H*W, C]."""
         big_h, big_w = raw.shape[-2:]
-        raw_gaussians = raw.view(v, b, -1, big_h * big_w).permute(1, 0, 3, 2)  # [B, V, HW, C]
-        raw_disp = self.to_disparity(refine_out)
+        return raw.view(v, b, -1, big_h * big_w).permute(1, 0, 3, 2)
+
+    def depths_from(self, raw_disp: Float[Tensor, "vb c h w"],
+                    disp_full: Float[Tensor, "vb 1 h w"], near: Float[Tensor, "b v"], far: Float[Tensor, "b v"]
+                    ) -> tuple[Tensor, Tensor]:
+        """Depths and densities [B, V, H*W, 1, gpp] from the depth head's output and the coarse
+        disparity, both in (v b) order."""
+        gpp = self.cfg.gaussians_per_pixel
+        b, v = near.shape
+        big_h, big_w = raw_disp.shape[-2:]
         delta, logits = raw_disp.split(gpp, dim=1)
         lo = (1.0 / far).t().reshape(-1, 1, 1, 1)
         hi = (1.0 / near).t().reshape(-1, 1, 1, 1)
@@ -134,8 +160,4 @@ class DepthPredictorMultiView(nn.Module):
         def bv(t):  # "(v b) dpt h w -> b v (h w) srf dpt"
             return t.view(v, b, gpp, big_h * big_w).permute(1, 0, 3, 2).unsqueeze(3)
 
-        return DepthOutputs(
-            depths=bv(depths), densities=bv(torch.sigmoid(logits)),
-            raw_gaussians=raw_gaussians, cost_volume=cost, pdf=pdf, coarse_disparity=coarse,
-            pdf_max=pdf_max, disparity_candidates=disps, raw_to_disparity=raw_disp,
-            features_fullres=features_full, refine_out=refine_out)
+        return bv(depths), bv(torch.sigmoid(logits))

@@ -147,11 +147,14 @@ class PrimaryNetwork(nn.Module):
 
     def encode(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
                extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
-               far: Float[Tensor, "b v"]) -> tuple[Tensor, Tensor, DepthOutputs]:
-        """Backbone and depth predictor: (transformer features, CNN features, depth outputs)."""
+               far: Float[Tensor, "b v"], run_heads: bool = True
+               ) -> tuple[Tensor, Tensor, DepthOutputs]:
+        """Backbone and depth predictor: (transformer features, CNN features, depth outputs);
+        ``run_heads=False`` stops before the depth and Gaussian heads."""
         self.check_inputs(images, intrinsics, extrinsics, near, far)
         trans, cnn = self.backbone(images, self.cfg.multiview_trans_attn_split)
-        out = self.depth_predictor(trans, cnn, images, intrinsics, extrinsics, near, far)
+        out = self.depth_predictor(trans, cnn, images, intrinsics, extrinsics, near, far,
+                                   run_heads)
         return trans, cnn, out
 
     def gaussians_from(self, depth: DepthOutputs, extrinsics: Tensor, intrinsics: Tensor,

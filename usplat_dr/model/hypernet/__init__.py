@@ -1,2 +1,3 @@
-"""UniqueSplat's hypernetwork branches (issue 5, in progress): ``resnet.ResNet18`` (E_H) and
-``epipolar.EpipolarProjection`` (Proj). The hypernetworks and the injection come next."""
+"""UniqueSplat's hypernetwork branches: ``resnet.ResNet18`` (E_H), ``epipolar`` (Proj),
+``view_branch`` (E_H + Proj + phi -> e_s), ``hypernetwork`` (H_a, H_s and the layouts of the
+weights they generate) and ``injection`` (target layers run with W + Delta W per target)."""

@@ -52,17 +52,17 @@ def project(points: Float[Tensor, "b n p s 3"], intrinsics: Float[Tensor, "b v 3
     return img, valid
 
 
-def cosine_correlation(samples: Float[Tensor, "b n v c p s"], valid: Bool[Tensor, "b n v p s"]
+def cosine_correlation(samples: Float[Tensor, "b n v p s c"], valid: Bool[Tensor, "b n v p s"]
                        ) -> Float[Tensor, "b n p s"]:
     """Mean over context-view pairs of the cosine similarity of their features at each sample
     (0 where either is invalid)."""
-    unit = F.normalize(samples, dim=3)
+    unit = F.normalize(samples, dim=-1)
     v = samples.shape[2]
     total, count = 0, 0
     for i in range(v):
         for j in range(i + 1, v):
             both = valid[:, :, i] & valid[:, :, j]
-            total = total + (unit[:, :, i] * unit[:, :, j]).sum(2) * both
+            total = total + (unit[:, :, i] * unit[:, :, j]).sum(-1) * both
             count = count + both.float()
     return total / count.clamp(min=1) if v > 1 else torch.zeros_like(valid[:, :, 0]).float()
 
@@ -70,23 +70,23 @@ def cosine_correlation(samples: Float[Tensor, "b n v c p s"], valid: Bool[Tensor
 class EpipolarProjection(nn.Module):
     """F_t = Proj(F_c, P_c, P_t) on a ``grid`` target grid with ``num_samples`` per ray."""
 
-    def __init__(self, num_samples: int = 32, grid: tuple[int, int] = (32, 32),
-                 temperature: float = 10.0):
+    def __init__(self, num_samples: int = 32, temperature: float = 10.0):
         super().__init__()
-        self.num_samples, self.grid = num_samples, tuple(grid)
+        self.num_samples = num_samples
         self.log_temperature = nn.Parameter(torch.tensor(float(temperature)).log())
 
     def forward(self, features: Float[Tensor, "b v c h w"],
                 intrinsics: Float[Tensor, "b v 3 3"], extrinsics: Float[Tensor, "b v 4 4"],
                 target_intrinsics: Float[Tensor, "b n 3 3"],
                 target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
-                target_far: Float[Tensor, "b n"]) -> tuple[Tensor, dict]:
-        """Target features [B, N, C, gh, gw] and ``aux`` (``correlation`` and ``weights``
-        [B, N, P, S], ``depths`` [B, N, S])."""
+                target_far: Float[Tensor, "b n"], grid: tuple[int, int]
+                ) -> tuple[Tensor, dict]:
+        """Target features [B, N, C, gh, gw] on a ``grid`` = (gh, gw) of target pixels, and
+        ``aux`` (``correlation`` and ``weights`` [B, N, P, S], ``depths`` [B, N, S])."""
         b, v, c, h, w = features.shape
         n = target_intrinsics.shape[1]
-        gh, gw = self.grid
-        origins, dirs = target_rays(target_intrinsics, target_extrinsics, self.grid)
+        gh, gw = grid
+        origins, dirs = target_rays(target_intrinsics, target_extrinsics, (gh, gw))
         depths = sample_depths(target_near, target_far, self.num_samples)  # [B, N, S]
         points = origins[..., None, :] + dirs[..., None, :] * depths[:, :, None, :, None]
         xy, valid = project(points, intrinsics, extrinsics)  # [B, N, V, P, S, 2]
@@ -94,13 +94,14 @@ class EpipolarProjection(nn.Module):
         grid = (2 * xy - 1).permute(0, 2, 1, 3, 4, 5).reshape(b * v, n * p, s, 2)
         sampled = F.grid_sample(features.reshape(b * v, c, h, w), grid, mode="bilinear",
                                 padding_mode="zeros", align_corners=False)  # [BV, C, NP, S]
-        sampled = sampled.view(b, v, c, n, p, s).permute(0, 3, 1, 2, 4, 5)  # [B, N, V, C, P, S]
-        corr = cosine_correlation(sampled, valid)
+        # channels last from here on: every reduction below is over contiguous memory
+        sampled = sampled.view(b, v, c, n, p, s).permute(0, 3, 1, 4, 5, 2).contiguous()
+        corr = cosine_correlation(sampled, valid)  # sampled: [B, N, V, P, S, C]
         any_valid = valid.any(2)  # [B, N, P, S]
         logits = (self.log_temperature.exp() * corr).masked_fill(~any_valid, -1e4)
         weights = torch.softmax(logits, dim=-1)
-        vmask = valid[:, :, :, None].float()  # [B, N, V, 1, P, S]
-        mean = (sampled * vmask).sum(2) / vmask.sum(2).clamp(min=1)  # [B, N, C, P, S]
-        fused = (mean * weights[:, :, None]).sum(-1)  # [B, N, C, P]
-        return fused.view(b, n, c, gh, gw), {"correlation": corr, "weights": weights,
+        vmask = valid[..., None].float()  # [B, N, V, P, S, 1]
+        mean = (sampled * vmask).sum(2) / vmask.sum(2).clamp(min=1)  # [B, N, P, S, C]
+        fused = (weights[..., None, :] @ mean).squeeze(-2)  # [B, N, P, C]
+        return fused.transpose(-1, -2).reshape(b, n, c, gh, gw), {"correlation": corr, "weights": weights,
                                               "depths": depths, "valid": valid}

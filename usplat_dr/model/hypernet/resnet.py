@@ -49,17 +49,24 @@ class ResNet18(nn.Module):
     IMAGENET_MEAN = (0.485, 0.456, 0.406)
     IMAGENET_STD = (0.229, 0.224, 0.225)
 
-    def __init__(self, num_classes: int = 1000):
+    def __init__(self, num_classes: int | None = 1000, stages: int = 4):
         super().__init__()
+        if not 1 <= stages <= 4:
+            raise ValueError(f"stages must be in 1..4, got {stages}")
+        if num_classes is not None and stages != 4:
+            raise ValueError("the classifier (num_classes) needs all 4 stages; pass "
+                             "num_classes=None for a truncated feature extractor")
+        self.stages = stages
         self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
         self.bn1 = nn.BatchNorm2d(64)
         self.maxpool = nn.MaxPool2d(3, 2, 1)
         planes = [64, 128, 256, 512]
-        self.layer1 = nn.Sequential(BasicBlock(64, 64), BasicBlock(64, 64))
-        self.layer2 = nn.Sequential(BasicBlock(64, 128, 2), BasicBlock(128, 128))
-        self.layer3 = nn.Sequential(BasicBlock(128, 256, 2), BasicBlock(256, 256))
-        self.layer4 = nn.Sequential(BasicBlock(256, 512, 2), BasicBlock(512, 512))
-        self.fc = nn.Linear(planes[-1], num_classes)
+        self.channels = planes[:stages]
+        for i in range(stages):
+            stride, inp = (1, 64) if i == 0 else (2, planes[i - 1])
+            self.add_module(f"layer{i + 1}", nn.Sequential(BasicBlock(inp, planes[i], stride),
+                                                           BasicBlock(planes[i], planes[i])))
+        self.fc = nn.Linear(planes[-1], num_classes) if num_classes is not None else None
         for m in self.modules():  # torchvision's initialisation
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
@@ -72,24 +79,28 @@ class ResNet18(nn.Module):
                              persistent=False)
 
     def features(self, images: Float[Tensor, "n 3 h w"]) -> list[Tensor]:
-        """``layer1``..``layer4`` outputs (strides 4, 8, 16, 32) of images in [0, 1]."""
+        """``layer1``..``layer<stages>`` outputs (strides 4, 8, 16, 32) of images in [0, 1]."""
         x = (images - self.mean) / self.std
         x = self.maxpool(F.relu(self.bn1(self.conv1(x))))
         out = []
-        for layer in (self.layer1, self.layer2, self.layer3, self.layer4):
-            x = layer(x)
+        for i in range(self.stages):
+            x = getattr(self, f"layer{i + 1}")(x)
             out.append(x)
         return out
 
     def forward(self, images: Float[Tensor, "n 3 h w"]) -> Float[Tensor, "n classes"]:
+        if self.fc is None:
+            raise RuntimeError("this ResNet18 has no classifier (num_classes=None); use "
+                               "features()")
         x = self.features(images)[-1]
         return self.fc(torch.flatten(F.adaptive_avg_pool2d(x, 1), 1))
 
-    def load_torchvision(self, path: str | os.PathLike | None, strict_fc: bool = True
-                         ) -> bool:
-        """Load a torchvision-format ResNet18 weight file. ``None`` or a missing file: keep the
-        random initialisation and log a warning (returns False); a file that does not fit
-        raises with the mismatching keys."""
+    def load_torchvision(self, path: str | os.PathLike | None) -> bool:
+        """Load a torchvision-format ResNet18 weight file (``resnet18-f37072fd.pth``): every
+        weight this network has must be in the file with its shape; the file's weights of
+        parts this network lacks (``fc`` without a classifier, stages beyond ``stages``) are
+        ignored. ``None`` or a missing file: keep the random initialisation and log a warning
+        (returns False); a file that does not fit raises with the mismatching keys."""
         if path is None or not Path(path).is_file():
             log.warning("ResNet18 weights %s not found: the view-specific branch starts from "
                         "random initialisation (pass a torchvision resnet18 .pth file, e.g. "
@@ -99,8 +110,9 @@ class ResNet18(nn.Module):
         from usplat_dr.model.checkpoint import check_state_dict
 
         sd = torch.load(path, map_location="cpu", weights_only=True)
-        if not strict_fc:
-            sd = {**sd, **{k: v for k, v in self.state_dict().items() if k.startswith("fc.")}}
+        absent = {"fc"} if self.fc is None else set()
+        absent |= {f"layer{i + 1}" for i in range(self.stages, 4)}
+        sd = {k: v for k, v in sd.items() if k.split(".")[0] not in absent}
         check_state_dict(self, sd, what=f"ResNet18 weights {path}")
         self.load_state_dict(sd, strict=True)
         return True

@@ -1,0 +1,372 @@
+"""UniqueSplat: the primary network (MVSplat's encoder) whose predictor layers take weights
+W + Delta W from a view-agnostic and a view-specific hypernetwork, so that every target view
+gets its own Gaussians.
+
+The encoder (backbone, transformer, cost volume, U-Nets) runs once per scene; the target
+layers and what follows them (the rest of their head, the Gaussian adapter) run per target,
+all targets batched. Variants (the paper's ablation): ``baseline`` (a) the primary network;
+``agnostic`` (b) target layers take W = H_a(e_a), the same for every view (cached when not
+training); ``full`` (c) W + Delta W with Delta W = H_s(phi(Proj(E_H(context), P_t))).
+"""
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field, fields, replace
+
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from usplat_dr.model.encoder.primary import PrimaryNetwork, PrimaryNetworkCfg
+from usplat_dr.model.hypernet.hypernetwork import (
+    AgnosticHypernetwork,
+    ConvSpec,
+    SpecificHypernetwork,
+)
+from usplat_dr.model.hypernet.injection import adapter_layout, run_head, vb_layout
+from usplat_dr.model.hypernet.view_branch import ViewSpecificEmbedding
+from usplat_dr.model.types import Gaussians
+
+log = logging.getLogger(__name__)
+
+VARIANTS = ("baseline", "agnostic", "full")
+HEADS = ("to_gaussians", "to_disparity")
+#: Layers that can take generated weights: the convolutions of the two heads.
+INJECTABLE = tuple(f"{h}.{i}" for h in HEADS for i in (0, 2))
+
+# Paper sec. "Results reported": the full model has 38.1M parameters.
+PAPER_PARAMETERS = 38.1e6
+
+
+@dataclass(frozen=True)
+class UniqueSplatCfg:
+    """Everything that shapes a UniqueSplat model. See ``PRESETS`` for the named ones."""
+
+    primary: PrimaryNetworkCfg = field(default_factory=PrimaryNetworkCfg)
+    variant: str = "full"
+    # Layers whose weights the hypernetworks generate: W (H_a) for all of them, and W + Delta W
+    # (H_s) for ``specific_layers``. Delta W on the last Gaussian-head conv by default: its
+    # input is shared by all targets, so a target costs a rank-r convolution, not a head
+    # (BENCHMARKS.md: both convs per target cost (c)/(a) = 1.8 at 256x256 on our CPU).
+    target_layers: tuple[str, ...] = ("to_gaussians.0", "to_gaussians.2")
+    specific_layers: tuple[str, ...] = ("to_gaussians.2",)
+    embed_dim: int = 512  # e_a and e_s (paper: 512)
+    hyper_hidden: int = 32  # width of the two hidden layers of H_a and H_s
+    # Delta W as a rank-r product per layer (None: a full Delta W per view; see
+    # hypernet/hypernetwork.py for the cost of each)
+    delta_rank: int | None = 16
+    resnet_stages: int = 4  # ResNet18 stages used by E_H (4: all of it)
+    resnet_weights: str | None = None  # torchvision resnet18 .pth file (ImageNet)
+    feature_dim: int = 64  # channels of F_c
+    proj_samples: int = 32  # samples per target ray
+    proj_stride: int = 8  # target grid of Proj = image size / proj_stride
+    proj_temperature: float = 10.0  # initial softmax temperature over the samples
+    phi_channels: tuple[int, ...] = (128, 256, 256, 256)
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        bad = [t for t in self.target_layers if t not in INJECTABLE]
+        if bad or not self.target_layers or len(set(self.target_layers)) != len(
+                self.target_layers):
+            raise ValueError(f"target_layers must be distinct names from {INJECTABLE}, got "
+                             f"{self.target_layers}")
+        if not self.specific_layers or not set(self.specific_layers) <= set(self.target_layers):
+            raise ValueError(f"specific_layers must be a non-empty subset of target_layers "
+                             f"{self.target_layers}, got {self.specific_layers}")
+        for name in ("embed_dim", "hyper_hidden", "feature_dim", "proj_samples", "proj_stride"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.delta_rank is not None and self.delta_rank < 1:
+            raise ValueError(f"delta_rank must be >= 1 or None (full Delta W), got "
+                             f"{self.delta_rank}")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "UniqueSplatCfg":
+        """From plain values (YAML/JSON): ``primary`` a dict of ``PrimaryNetworkCfg`` fields."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown UniqueSplatCfg keys {unknown}; known: {sorted(known)}")
+        d = dict(d)
+        if isinstance(d.get("primary"), dict):
+            d["primary"] = PrimaryNetworkCfg.from_dict(d["primary"])
+        for k, v in list(d.items()):
+            if isinstance(v, list):
+                d[k] = tuple(v)
+        return replace(cls(), **d)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+PRESETS: dict[str, UniqueSplatCfg] = {
+    # The paper's configuration: MVSplat's RE10K encoder, 512-d embeddings, a full ResNet18.
+    "paper": UniqueSplatCfg(),
+    # For CPU demos and tests at 64x64: a 4x smaller encoder, 2 ResNet stages.
+    "tiny": UniqueSplatCfg(
+        primary=PrimaryNetworkCfg(
+            d_feature=32, num_transformer_layers=2, num_depth_candidates=32,
+            costvolume_unet_feat_dim=32, costvolume_unet_attn_res=(4,),
+            depth_unet_feat_dim=16, depth_unet_channel_mult=(1, 1, 1),
+            depth_unet_attn_res=(4,), sh_degree=2),
+        embed_dim=128, hyper_hidden=16, delta_rank=4, resnet_stages=2, feature_dim=32,
+        proj_samples=16, phi_channels=(32, 32, 64, 64)),
+}
+
+
+@dataclass
+class UniqueSplatOutput:
+    """``gaussians``: batch B N (target n of scene b at b N + n), each set for its own
+    target view (for the baseline and agnostic variants the same set repeated).
+    ``color`` [B, N, 3, H, W], ``alpha`` and ``depth`` [B, N, H, W] when rendered.
+    ``aux``: ``embedding`` e_s [B, N, D] and Proj's ``correlation`` / ``weights`` (full
+    variant)."""
+
+    gaussians: Gaussians
+    num_targets: int
+    per_target: bool
+    color: Tensor | None = None
+    alpha: Tensor | None = None
+    depth: Tensor | None = None
+    aux: dict = field(default_factory=dict)
+
+    def target(self, b: int, n: int) -> Gaussians:
+        """The Gaussians of target ``n`` of scene ``b``."""
+        i = b * self.num_targets + n
+        return Gaussians(**{f.name: getattr(self.gaussians, f.name)[i:i + 1]
+                            for f in fields(Gaussians)})
+
+
+class GeneratedConv(nn.Module):
+    """Stands where a target convolution was: its weights come from the hypernetworks."""
+
+    def __init__(self, spec: ConvSpec):
+        super().__init__()
+        self.spec = spec
+
+    def forward(self, x):
+        raise RuntimeError(f"{self.spec.name} takes generated weights; run it through "
+                           f"UniqueSplat.forward")
+
+    def extra_repr(self) -> str:
+        return f"{self.spec}"
+
+
+class UniqueSplat(nn.Module):
+    """``UniqueSplat(config)`` or ``UniqueSplat.from_preset("paper" | "tiny", variant=...)``.
+
+    ``forward(images, intrinsics, extrinsics, near, far, target_intrinsics,
+    target_extrinsics, target_near, target_far, render=True) -> UniqueSplatOutput``. Cameras
+    follow the field's conventions (normalised intrinsics, camera-to-world OpenCV extrinsics).
+    """
+
+    def __init__(self, config: UniqueSplatCfg | None = None):
+        super().__init__()
+        cfg = config or UniqueSplatCfg()
+        self.cfg = cfg
+        self.primary = PrimaryNetwork(cfg.primary)
+        dp = self.primary.depth_predictor
+        heads = {h: getattr(dp, h) for h in HEADS}
+        self.specs = tuple(ConvSpec.of(t, heads[t.split(".")[0]][int(t.split(".")[1])])
+                           for t in cfg.target_layers)
+        self.specific_specs = tuple(s for s in self.specs if s.name in cfg.specific_layers)
+        self._cached_weights = None
+        self.agnostic = self.specific = None
+        if cfg.variant == "baseline":
+            return
+        base = torch.cat([t.reshape(-1) for s in self.specs
+                          for t in (self._conv(s.name).weight, self._conv(s.name).bias)])
+        self.agnostic = AgnosticHypernetwork(self.specs, cfg.embed_dim, cfg.hyper_hidden,
+                                             base.detach())
+        for s in self.specs:  # the hypernetworks own these weights now
+            head, i = s.name.split(".")
+            heads[head][int(i)] = GeneratedConv(s)
+        if cfg.variant == "full":
+            self.view_embedding = ViewSpecificEmbedding(
+                cfg.resnet_stages, cfg.feature_dim, cfg.proj_samples, cfg.proj_temperature,
+                cfg.proj_stride, cfg.phi_channels, cfg.embed_dim)
+            self.specific = SpecificHypernetwork(self.specific_specs, cfg.embed_dim,
+                                                 cfg.hyper_hidden, cfg.delta_rank)
+            self.view_embedding.features.resnet.load_torchvision(cfg.resnet_weights)
+
+    # ---- construction -------------------------------------------------------------------
+
+    @classmethod
+    def from_preset(cls, name: str = "paper", variant: str = "full", **overrides
+                    ) -> "UniqueSplat":
+        """A named configuration (``PRESETS``: "paper", "tiny") and variant ("baseline",
+        "agnostic", "full"); ``overrides`` replace other ``UniqueSplatCfg`` fields."""
+        if name not in PRESETS:
+            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
+        return cls(replace(PRESETS[name], variant=variant, **overrides))
+
+    def _conv(self, name: str) -> nn.Conv2d:
+        head, i = name.split(".")
+        return getattr(self.primary.depth_predictor, head)[int(i)]
+
+    def load_mvsplat(self, checkpoint, map_location="cpu", trust_checkpoint: bool = False
+                     ) -> "UniqueSplat":
+        """Load an MVSplat checkpoint (path, Lightning dict or bare state dict) into the
+        primary network strictly; for the agnostic and full variants the target layers'
+        weights become W (H_a's output bias, with zero last-layer weight), so that the
+        untrained model renders what MVSplat renders."""
+        from usplat_dr.model.checkpoint import (
+            check_state_dict,
+            extract_state_dict,
+            read_checkpoint,
+        )
+
+        sd = extract_state_dict(read_checkpoint(checkpoint, map_location, trust_checkpoint))
+        if self.agnostic is not None:
+            keys = {f"depth_predictor.{s.name}.{p}": shape for s in self.specs
+                    for p, shape in (("weight", s.weight_shape), ("bias", (s.out_channels,)))}
+            check_state_dict({**self.primary.state_dict(), **keys}, sd)
+            base = torch.cat([sd.pop(k).reshape(-1) for k in keys])
+            self.agnostic.set_base(base.to(self.agnostic.hyper.last.bias))
+        check_state_dict(self.primary, sd)
+        self.primary.load_state_dict(sd, strict=True)
+        self._cached_weights = None
+        return self
+
+    # ---- the weights of the target layers ----------------------------------------------
+
+    def agnostic_weights(self) -> list[tuple[Tensor, Tensor]]:
+        """W per target layer (weight, bias). Cached while not training and gradients are
+        off; the cache is dropped when H_a's parameters change (in-place version counters)."""
+        if self.agnostic is None:
+            return [(self._conv(s.name).weight, self._conv(s.name).bias) for s in self.specs]
+        params = tuple(self.agnostic.parameters())
+        key = tuple((id(p), p._version) for p in params)
+        if self.training or torch.is_grad_enabled():
+            self._cached_weights = None
+            return self.agnostic()
+        if self._cached_weights is None or self._cached_weights[0] != key:
+            self._cached_weights = (key, self.agnostic())
+        return self._cached_weights[1]
+
+    def train(self, mode: bool = True):
+        self._cached_weights = None
+        return super().train(mode)
+
+    # ---- forward ------------------------------------------------------------------------
+
+    def check_targets(self, b: int, target_intrinsics, target_extrinsics, target_near,
+                      target_far) -> int:
+        if target_intrinsics.ndim != 4 or target_intrinsics.shape[0] != b:
+            raise ValueError(f"target_intrinsics must have shape [B={b}, N, 3, 3], got "
+                             f"{list(target_intrinsics.shape)}")
+        n = target_intrinsics.shape[1]
+        if n < 1:
+            raise ValueError("target_intrinsics must hold >= 1 target view")
+        for name, t, shape in (("target_intrinsics", target_intrinsics, (b, n, 3, 3)),
+                               ("target_extrinsics", target_extrinsics, (b, n, 4, 4)),
+                               ("target_near", target_near, (b, n)),
+                               ("target_far", target_far, (b, n))):
+            if tuple(t.shape) != shape:
+                raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
+        return n
+
+    def forward(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
+                extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+                far: Float[Tensor, "b v"], target_intrinsics: Float[Tensor, "b n 3 3"],
+                target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
+                target_far: Float[Tensor, "b n"], render: bool = True, global_step: int = 0,
+                background_color: Tensor | None = None, settings=None) -> UniqueSplatOutput:
+        """Gaussians per target view, and their renders (``render=True``) through the
+        Dr.Jit rasteriser with MVSplat's SH basis (``settings``: a ``RasterSettings``)."""
+        b, v, _, h, w = images.shape
+        n = self.check_targets(b, target_intrinsics, target_extrinsics, target_near, target_far)
+        _, _, depth = self.primary.encode(images, intrinsics, extrinsics, near, far,
+                                          run_heads=False)
+        aux = {}
+        deltas = {}
+        if self.specific is not None:
+            e_s, proj_aux = self.view_embedding(images, intrinsics, extrinsics,
+                                                target_intrinsics, target_extrinsics,
+                                                target_near, target_far)
+            aux.update(embedding=e_s, correlation=proj_aux["correlation"],
+                       weights=proj_aux["weights"])
+            deltas = {s.name: d for s, d in zip(self.specific_specs,
+                                                self.specific(e_s.flatten(0, 1)))}
+        weights = dict(zip(self.cfg.target_layers, self.agnostic_weights()))
+        dp = self.primary.depth_predictor
+        nb = n if deltas else 1  # per-target work only where Delta W exists
+
+        def head(name: str, x: Tensor):
+            layers = []
+            for i in (0, 2):
+                key = f"{name}.{i}"
+                if key in weights:
+                    wt, bias = weights[key]
+                else:
+                    conv = getattr(dp, name)[i]
+                    wt, bias = conv.weight, conv.bias
+                layers.append((wt, bias, deltas.get(key)))
+            return run_head(x, layers, v, b, nb)
+
+        raw, pt = head("to_gaussians", depth.head_input)
+        raw = adapter_layout(raw, pt, v, b, nb)  # [(B nb), V, HW, C]
+        disp, pt = head("to_disparity", depth.refine_out)
+        # scene-level tensors repeated per target batch entry
+        near_t, far_t = near.repeat_interleave(nb, 0), far.repeat_interleave(nb, 0)
+        disp_full = vb_layout(depth.disp_full, False, v, b, nb)
+        depths, densities = dp.depths_from(vb_layout(disp, pt, v, b, nb), disp_full,
+                                           near_t, far_t)
+        ext_t = extrinsics.repeat_interleave(nb, 0)
+        int_t = intrinsics.repeat_interleave(nb, 0)
+        depth_out = dataclasses.replace(depth, raw_gaussians=raw, depths=depths,
+                                        densities=densities)
+        gaussians = self.primary.gaussians_from(depth_out, ext_t, int_t, (h, w), global_step)
+        if nb == 1 and n > 1:  # the same Gaussians for every target
+            gaussians = Gaussians(**{
+                f.name: getattr(gaussians, f.name)[:, None].expand(
+                    b, n, *getattr(gaussians, f.name).shape[1:]).flatten(0, 1)
+                for f in fields(Gaussians)})
+        out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
+                                aux=aux)
+        if render:
+            self._render(out, target_intrinsics, target_extrinsics, target_near, target_far,
+                         (h, w), background_color, settings)
+        return out
+
+    @staticmethod
+    def _render(out: UniqueSplatOutput, target_intrinsics, target_extrinsics, target_near,
+                target_far, image_shape, background_color, settings) -> None:
+        from usplat_dr.render import RasterSettings, rasterize
+
+        b, n = target_near.shape
+        g = out.gaussians
+        bg = (torch.zeros(b * n, 3, device=g.means.device) if background_color is None
+              else background_color.to(g.means).expand(b * n, 3))
+        r = rasterize(target_extrinsics.flatten(0, 1), target_intrinsics.flatten(0, 1),
+                      target_near.flatten(), target_far.flatten(), image_shape, bg, g.means,
+                      g.covariances, g.harmonics, g.opacities,
+                      settings or RasterSettings(sh_basis="mvsplat"))
+        out.color = r.color.unflatten(0, (b, n))
+        out.alpha = r.alpha.unflatten(0, (b, n))
+        out.depth = r.depth.unflatten(0, (b, n))
+
+    # ---- reporting ----------------------------------------------------------------------
+
+    def parameter_table(self) -> list[tuple[str, int]]:
+        """(part, parameter count) rows; the last row is the total."""
+        def count(m):
+            return sum(p.numel() for p in m.parameters()) if m is not None else 0
+
+        dp = self.primary.depth_predictor
+        rows = [("primary: backbone (CNN + transformer)", count(self.primary.backbone)),
+                ("primary: depth predictor (without generated layers)", count(dp))]
+        if self.agnostic is not None:
+            rows.append(("view-agnostic: e_a + H_a (W incl. its bias = base weights)",
+                         count(self.agnostic)))
+        if self.specific is not None:
+            ve = self.view_embedding
+            rows += [("view-specific: E_H ResNet18" + (
+                f" ({self.cfg.resnet_stages} stages, no fc)"), count(ve.features.resnet)),
+                     ("view-specific: lateral convs + Proj temperature",
+                      count(ve.features.lateral) + count(ve.proj)),
+                     ("view-specific: phi", count(ve.phi)),
+                     ("view-specific: H_s", count(self.specific))]
+        rows.append(("total", sum(p.numel() for p in self.parameters())))
+        return rows
