@@ -145,8 +145,8 @@ class DepthPredictorMultiView(nn.Module):
         return raw.view(v, b, -1, big_h * big_w).permute(1, 0, 3, 2)
 
     def depths_from(self, raw_disp: Float[Tensor, "vb c h w"],
-                    disp_full: Float[Tensor, "vb 1 h w"], near: Float[Tensor, "b v"], far: Float[Tensor, "b v"]
-                    ) -> tuple[Tensor, Tensor]:
+                    disp_full: Float[Tensor, "vb 1 h w"], near: Float[Tensor, "b v"],
+                    far: Float[Tensor, "b v"]) -> tuple[Tensor, Tensor]:
         """Depths and densities [B, V, H*W, 1, gpp] from the depth head's output and the coarse
         disparity, both in (v b) order."""
         gpp = self.cfg.gaussians_per_pixel

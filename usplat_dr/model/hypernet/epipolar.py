@@ -103,5 +103,5 @@ class EpipolarProjection(nn.Module):
         vmask = valid[..., None].float()  # [B, N, V, P, S, 1]
         mean = (sampled * vmask).sum(2) / vmask.sum(2).clamp(min=1)  # [B, N, P, S, C]
         fused = (weights[..., None, :] @ mean).squeeze(-2)  # [B, N, P, C]
-        return fused.transpose(-1, -2).reshape(b, n, c, gh, gw), {"correlation": corr, "weights": weights,
-                                              "depths": depths, "valid": valid}
+        aux = {"correlation": corr, "weights": weights, "depths": depths, "valid": valid}
+        return fused.transpose(-1, -2).reshape(b, n, c, gh, gw), aux
