@@ -89,6 +89,18 @@ def _params(args) -> int:
     return 0
 
 
+def _train(args) -> int:
+    import json
+
+    from usplat_dr.config import load_config
+    from usplat_dr.training import train
+
+    cfg = load_config(args.config or ["train/configs/synthetic_tiny.yaml"], args.overrides)
+    result = train(cfg, resume=args.resume)
+    print(json.dumps(result))
+    return 0
+
+
 def _doctor(args) -> int:
     from usplat_dr import doctor
 
@@ -119,6 +131,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--preset", default="paper", choices=["paper", "tiny"])
     p.add_argument("--variant", default="all", choices=["all", "baseline", "agnostic", "full"])
     p.set_defaults(func=_params)
+
+    p = sub.add_parser("train", help="train UniqueSplat (any variant) with the field's recipe; "
+                       "also under torchrun (DistributedDataParallel)")
+    p.add_argument("--config", action="append",
+                   help="YAML file (train/configs/); repeat to merge several in order "
+                   "(default: train/configs/synthetic_tiny.yaml)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from output_dir/checkpoints/last.ckpt when it exists")
+    p.add_argument("overrides", nargs="*", metavar="key.sub=value",
+                   help="dotted overrides, e.g. optimizer.lr=1e-4 train.steps=100")
+    p.set_defaults(func=_train)
 
     from usplat_dr.data.synth.scenes import KINDS
 

@@ -52,19 +52,22 @@ def project(points: Float[Tensor, "b n p s 3"], intrinsics: Float[Tensor, "b v 3
     return img, valid
 
 
-def cosine_correlation(samples: Float[Tensor, "b n v p s c"], valid: Bool[Tensor, "b n v p s"]
+def cosine_correlation(samples: Float[Tensor, "b n p v s c"], valid: Bool[Tensor, "b n p v s"]
                        ) -> Float[Tensor, "b n p s"]:
     """Mean over context-view pairs of the cosine similarity of their features at each sample
-    (0 where either is invalid)."""
-    unit = F.normalize(samples, dim=-1)
-    v = samples.shape[2]
+    (0 where either is invalid). cos = <a, b> / sqrt(|a|^2 |b|^2 + eps): one division per
+    sample pair, not per channel."""
+    sq = samples.square().sum(-1)  # [B, N, P, V, S]
+    v = samples.shape[3]
     total, count = 0, 0
     for i in range(v):
         for j in range(i + 1, v):
-            both = valid[:, :, i] & valid[:, :, j]
-            total = total + (unit[:, :, i] * unit[:, :, j]).sum(-1) * both
+            both = valid[:, :, :, i] & valid[:, :, :, j]
+            dot = (samples[:, :, :, i] * samples[:, :, :, j]).sum(-1)
+            cos = dot / (sq[:, :, :, i] * sq[:, :, :, j] + 1e-24).sqrt()
+            total = total + cos * both
             count = count + both.float()
-    return total / count.clamp(min=1) if v > 1 else torch.zeros_like(valid[:, :, 0]).float()
+    return total / count.clamp(min=1) if v > 1 else torch.zeros_like(valid[:, :, :, 0]).float()
 
 
 class EpipolarProjection(nn.Module):
@@ -94,14 +97,18 @@ class EpipolarProjection(nn.Module):
         grid = (2 * xy - 1).permute(0, 2, 1, 3, 4, 5).reshape(b * v, n * p, s, 2)
         sampled = F.grid_sample(features.reshape(b * v, c, h, w), grid, mode="bilinear",
                                 padding_mode="zeros", align_corners=False)  # [BV, C, NP, S]
-        # channels last from here on: every reduction below is over contiguous memory
-        sampled = sampled.view(b, v, c, n, p, s).permute(0, 3, 1, 4, 5, 2).contiguous()
-        corr = cosine_correlation(sampled, valid)  # sampled: [B, N, V, P, S, C]
+        # [B, N, P, V, S, C] from here on: the reductions below run over contiguous memory,
+        # and the fusion is one matrix product per pixel over (view, sample) pairs.
+        sampled = sampled.view(b, v, c, n, p, s).permute(0, 3, 4, 1, 5, 2).contiguous()
+        valid_p = valid.permute(0, 1, 3, 2, 4)  # [B, N, P, V, S]
+        corr = cosine_correlation(sampled, valid_p)  # [B, N, P, S]
         any_valid = valid.any(2)  # [B, N, P, S]
         logits = (self.log_temperature.exp() * corr).masked_fill(~any_valid, -1e4)
         weights = torch.softmax(logits, dim=-1)
-        vmask = valid[..., None].float()  # [B, N, V, P, S, 1]
-        mean = (sampled * vmask).sum(2) / vmask.sum(2).clamp(min=1)  # [B, N, P, S, C]
-        fused = (weights[..., None, :] @ mean).squeeze(-2)  # [B, N, P, C]
+        # F_t = sum_s w_s * mean over the views that see sample s of their features
+        vmask = valid_p.float()
+        coeff = weights[:, :, :, None] * vmask / vmask.sum(3, keepdim=True).clamp(min=1)
+        fused = (coeff.reshape(b, n, p, 1, v * s) @ sampled.view(b, n, p, v * s, c))
+        fused = fused.view(b, n, p, c)
         aux = {"correlation": corr, "weights": weights, "depths": depths, "valid": valid}
         return fused.transpose(-1, -2).reshape(b, n, c, gh, gw), aux

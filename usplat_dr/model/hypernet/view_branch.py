@@ -23,12 +23,25 @@ from usplat_dr.model.hypernet.resnet import ResNet18
 
 
 class ContextFeatures(nn.Module):
-    """E_H and the lateral convs: images [B, V, 3, H, W] -> F_c [B, V, C, H/8, W/8]."""
+    """E_H and the lateral convs: images [B, V, 3, H, W] -> F_c [B, V, C, H/8, W/8].
+
+    The ResNet's BatchNorm layers always use their running statistics (frozen BatchNorm, as
+    detection and pixelSplat-style backbones fine-tune pretrained ResNets; their affine
+    parameters still train): with 1-2 scenes per GPU, batch statistics would be noise, and a
+    scene's features would depend on the other scenes in its batch and on how the batch is
+    split between ranks."""
 
     def __init__(self, stages: int = 4, feature_dim: int = 64):
         super().__init__()
         self.resnet = ResNet18(num_classes=None, stages=stages)
         self.lateral = nn.ModuleList(nn.Conv2d(c, feature_dim, 1) for c in self.resnet.channels)
+
+    def train(self, mode: bool = True) -> "ContextFeatures":
+        super().train(mode)
+        for m in self.resnet.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                m.eval()
+        return self
 
     def forward(self, images: Float[Tensor, "b v 3 h w"]) -> Float[Tensor, "b v c h8 w8"]:
         b, v, _, h, w = images.shape

@@ -1,0 +1,149 @@
+"""Inference time per scene of UniqueSplat's variants (a) baseline, (b) agnostic, (c) full:
+2 context views, 3 target views, batch 1, 2 threads, ``inference_mode``, random weights.
+
+Two timings per variant: the model (encoder once, Gaussians for every target) and the model
+plus rendering the 3 targets with the Dr.Jit rasteriser (LLVM). Times: one process builds all
+variants and alternates them run by run (a, b, c, a, b, c, ...), so machine load hits them
+alike; ``--processes`` such processes, the best median reported. Peak RSS: one process per
+variant (its own peak). Ratios are against (a) measured in the same run. The paper (A6000):
+(c)/(a) = 65.2 / 48.5 = 1.34, (b)/(a) = 1.002. ``--both`` adds (c) with Delta W on both
+Gaussian-head convolutions.
+
+    python train/bench_uniquesplat.py [--processes 2] [--repeats 5] [--setting paper256 tiny64]
+"""
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+
+VARIANTS = {"(a) baseline": ("baseline", {}), "(b) agnostic": ("agnostic", {}),
+            "(c) full": ("full", {})}
+BOTH = {"(c) full, Delta W on both head convs": (
+    "full", {"specific_layers": ["to_gaussians.0", "to_gaussians.2"]})}
+SETTINGS = {"paper256": ("paper", 256), "tiny64": ("tiny", 64), "paper64": ("paper", 64)}
+
+
+def scene(size: int):
+    import torch
+
+    e = torch.eye(4).repeat(1, 2, 1, 1)
+    e[0, 1, 0, 3] = 0.1
+    k = torch.tensor([[0.86, 0, 0.5], [0, 0.86, 0.5], [0, 0, 1]]).repeat(1, 2, 1, 1)
+    te = torch.eye(4).repeat(1, 3, 1, 1)
+    te[0, :, 0, 3] = torch.tensor([0.025, 0.05, 0.075])
+    x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
+    return (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2), k[:, :1].expand(1, 3, 3, 3), te,
+            torch.ones(1, 3), 100 * torch.ones(1, 3))
+
+
+def build(preset: str, variant: str, overrides: dict):
+    import torch
+
+    from usplat_dr.model import UniqueSplat
+
+    torch.manual_seed(0)
+    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
+    return UniqueSplat.from_preset(preset, variant=variant, **overrides).eval()
+
+
+def child_times(preset: str, size: int, configs: dict, repeats: int, out: str) -> None:
+    import time
+
+    import torch
+
+    models = {name: build(preset, *cfg) for name, cfg in configs.items()}
+    args = scene(size)
+    result = {name: {"params": sum(p.numel() for p in m.parameters())}
+              for name, m in models.items()}
+    with torch.inference_mode():
+        for render in (False, True):
+            key = "render" if render else "model"
+            samples = {name: ([], []) for name in models}
+            for _ in range(2):  # warm-up: oneDNN primitives, the rasteriser's kernels
+                for m in models.values():
+                    m(*args, render=render)
+            for _ in range(repeats):
+                for name, m in models.items():
+                    w, c = time.perf_counter(), time.process_time()
+                    m(*args, render=render)
+                    samples[name][0].append(time.perf_counter() - w)
+                    samples[name][1].append(time.process_time() - c)
+            for name, (walls, cpus) in samples.items():
+                result[name][key] = {"wall": statistics.median(walls),
+                                     "cpu": statistics.median(cpus)}
+    with open(out, "w") as f:
+        json.dump(result, f)
+
+
+def child_memory(preset: str, size: int, cfg: list, out: str) -> None:
+    import resource
+
+    import torch
+
+    model = build(preset, *cfg)
+    with torch.inference_mode():
+        model(*scene(size), render=True)
+    with open(out, "w") as f:
+        json.dump({"rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}, f)
+
+
+def run_child(mode: str, payload: list, repeats: int, out: str) -> dict:
+    subprocess.run([sys.executable, __file__, "--repeats", str(repeats), "--child", mode,
+                    "--payload", json.dumps(payload + [out])], check=True)
+    with open(out) as f:
+        return json.load(f)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--processes", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--setting", nargs="+", default=["paper256", "tiny64"],
+                    choices=sorted(SETTINGS))
+    ap.add_argument("--both", action="store_true",
+                    help="also (c) with Delta W on both Gaussian-head convolutions")
+    ap.add_argument("--child", help=argparse.SUPPRESS)  # internal: one measurement
+    ap.add_argument("--payload", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    import logging
+
+    logging.disable(logging.WARNING)  # the ResNet18 random-initialisation warning
+    if args.child:
+        import torch
+
+        torch.set_num_threads(2)
+        payload = json.loads(args.payload)
+        if args.child == "times":
+            return child_times(*payload[:3], args.repeats, payload[3])
+        return child_memory(*payload)
+
+    configs = {**VARIANTS, **(BOTH if args.both else {})}
+    for setting in args.setting:
+        preset, size = SETTINGS[setting]
+        with tempfile.TemporaryDirectory() as tmp:
+            runs = [run_child("times", [preset, size, configs], args.repeats, f"{tmp}/t{i}.json")
+                    for i in range(args.processes)]
+            rss = {name: run_child("memory", [preset, size, list(cfg)], 0,
+                                   f"{tmp}/m.json")["rss_gib"] for name, cfg in configs.items()}
+        print(f"\n{preset} preset, {size}x{size}, 2 context + 3 targets, batch 1, 2 threads; "
+              f"variants alternated run by run, best of {args.processes} processes (median of "
+              f"{args.repeats} runs each)")
+
+        def best(name, key, what):
+            return min(r[name][key][what] for r in runs)
+
+        base = {key: best("(a) baseline", key, "wall") for key in ("model", "render")}
+        for name in configs:
+            cells = [f"{key}: wall {best(name, key, 'wall'):6.3f} s "
+                     f"({best(name, key, 'wall') / base[key]:4.2f}x) cpu "
+                     f"{best(name, key, 'cpu'):6.3f} s" for key in ("model", "render")]
+            print(f"  {name:38s} {runs[0][name]['params'] / 1e6:6.2f}M params  "
+                  + "  |  ".join(cells) + f"  peak RSS {rss[name]:4.2f} GiB")
+        print("  targets: (c)/(a) <= 1.25, (b)/(a) <= 1.02 (paper on a GPU: 1.34, 1.002)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,455 @@
+"""Training: the field's recipe (Adam, one-cycle cosine schedule, gradient clipping at 0.5,
+2 context + 4 target views, MSE + 0.05 LPIPS after a given step) on one process or under
+``torchrun`` (DistributedDataParallel: gloo on CPU, nccl on GPU), CPU or CUDA.
+
+Nothing is lost: checkpoints are written atomically every ``train.checkpoint_every`` steps and
+on SIGINT/SIGTERM; ``resume`` continues exactly (model, optimiser, scheduler, step, RNG states,
+data position). A step with a non-finite loss or gradient is skipped with a warning and
+counted; ``train.max_nonfinite`` of them in a row stop the run with a message and a checkpoint
+of the last good state.
+"""
+
+import csv
+import dataclasses
+import logging
+import os
+import random
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from usplat_dr.config import ConfigError, check_keys
+from usplat_dr.io import torch_save
+
+log = logging.getLogger(__name__)
+
+SECTIONS = {"seed", "output_dir", "device", "threads", "model", "dataset", "data_loader",
+            "optimizer", "loss", "train", "name"}
+
+
+class TrainingStopped(RuntimeError):
+    """Training stopped on purpose (non-finite steps); the message says why and where the last
+    good checkpoint is."""
+
+
+# ---- configuration -----------------------------------------------------------------------
+
+def model_from_config(mcfg: dict):
+    from usplat_dr.model import UniqueSplat
+    from usplat_dr.model.uniquesplat import PRESETS, UniqueSplatCfg
+
+    check_keys(mcfg, {"preset", "variant", "overrides", "init_mvsplat"}, "model")
+    preset = mcfg.get("preset", "tiny")
+    if preset not in PRESETS:
+        raise ConfigError(f"model.preset must be one of {sorted(PRESETS)}, got {preset!r}")
+    base = dataclasses.asdict(PRESETS[preset])
+    over = dict(mcfg.get("overrides") or {})
+    if "primary" in over:
+        base["primary"] = {**base["primary"], **over.pop("primary")}
+    cfg = UniqueSplatCfg.from_dict({**base, **over, "variant": mcfg.get("variant", "full")})
+    model = UniqueSplat(cfg)
+    if mcfg.get("init_mvsplat"):
+        model.load_mvsplat(mcfg["init_mvsplat"])
+    return model
+
+
+def dataset_from_config(dcfg: dict, stage: str, step_tracker=None, rank: int | None = None,
+                        world_size: int | None = None):
+    from usplat_dr.data.dataset import ChunkDataset, dataset_cfg
+    from usplat_dr.data.view_sampler import (
+        ViewSamplerAllCfg,
+        ViewSamplerBoundedCfg,
+        ViewSamplerEvaluationCfg,
+    )
+
+    check_keys(dcfg, {"name", "roots", "image_shape", "view_sampler", "overrides",
+                      "evaluation_index"}, "dataset")
+    if not dcfg.get("roots"):
+        raise ConfigError("dataset.roots must name at least one dataset folder (e.g. "
+                          "dataset.roots=[datasets/re10k]); make a synthetic one with "
+                          "`usplat synth --out DIR`")
+    kinds = {"bounded": ViewSamplerBoundedCfg, "evaluation": ViewSamplerEvaluationCfg,
+             "all": ViewSamplerAllCfg}
+    vs = dict(dcfg.get("view_sampler") or {"name": "bounded"})
+    if stage != "train" and dcfg.get("evaluation_index"):
+        vs = {"name": "evaluation", "index_path": dcfg["evaluation_index"]}
+    name = vs.get("name", "bounded")
+    if name not in kinds:
+        raise ConfigError(f"dataset.view_sampler.name must be one of {sorted(kinds)}")
+    fields = {f.name for f in dataclasses.fields(kinds[name])}
+    check_keys(vs, fields, "dataset.view_sampler")
+    sampler = kinds[name](**vs)
+    over = dict(dcfg.get("overrides") or {})
+    if "image_shape" in dcfg:
+        over["image_shape"] = tuple(dcfg["image_shape"])
+    cfg = dataset_cfg(dcfg.get("name", "re10k"), dcfg["roots"], view_sampler=sampler, **over)
+    return ChunkDataset(cfg, stage, step_tracker, rank=rank, world_size=world_size)
+
+
+# ---- distributed ---------------------------------------------------------------------------
+
+def setup_distributed(device: str, threads: int | None = None
+                      ) -> tuple[int, int, torch.device]:
+    """Rank, world size and device; initialises the process group under torchrun. CPU threads
+    of torch and Dr.Jit per process: ``threads``, or the cores divided by the ranks."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if device == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError("device=cuda but torch sees no GPU; use device=cpu")
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        dev = torch.device("cuda", local)
+    elif device == "cpu":
+        dev = torch.device("cpu")
+    else:
+        raise ConfigError(f"device must be 'cpu' or 'cuda', got {device!r}")
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if device == "cuda" else "gloo")
+    # Share the cores between ranks so they do not oversubscribe them.
+    threads = threads or max(1, (os.cpu_count() or 1) // world)
+    torch.set_num_threads(threads)
+    if device == "cpu":
+        import drjit as dr
+
+        dr.set_thread_count(threads)
+    return rank, world, dev
+
+
+# ---- state ------------------------------------------------------------------------------
+
+def rng_state() -> dict:
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+             "python": random.getstate()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+class Batches:
+    """An endless stream of batches over epochs, with a position (epoch, batches taken in the
+    epoch) that a resumed run replays to: the same batches in the same order."""
+
+    def __init__(self, dataset, batch_size: int, num_workers: int, step_tracker):
+        from torch.utils.data import DataLoader
+
+        self.dataset, self.step_tracker = dataset, step_tracker
+        self.loader = DataLoader(dataset, batch_size=batch_size, num_workers=num_workers,
+                                 persistent_workers=False)
+        self.epoch, self.taken = 0, 0
+        self._it = None
+
+    def state(self) -> dict:
+        return {"epoch": self.epoch, "taken": self.taken}
+
+    def restore(self, state: dict) -> None:
+        self.epoch, self.taken = state["epoch"], 0
+        self.dataset.set_epoch(self.epoch)
+        self._it = iter(self.loader)
+        for _ in range(state["taken"]):  # replay (decodes the skipped batches once)
+            next(self._it)
+            self.taken += 1
+
+    def next(self) -> dict:
+        for _ in range(2):
+            if self._it is None:
+                self.dataset.set_epoch(self.epoch)
+                self._it = iter(self.loader)
+            try:
+                batch = next(self._it)
+                self.taken += 1
+                return batch
+            except StopIteration:
+                self._it, self.epoch, self.taken = None, self.epoch + 1, 0
+        raise ConfigError("the training set yields no examples (see the dataset summary "
+                          "above: too few frames for the view sampler, or every scene skipped)")
+
+
+def scene_args(batch: dict, device: torch.device) -> tuple:
+    c, t = batch["context"], batch["target"]
+    return tuple(x.to(device) for x in (
+        c["image"], c["intrinsics"], c["extrinsics"], c["near"], c["far"],
+        t["intrinsics"], t["extrinsics"], t["near"], t["far"]))
+
+
+# ---- the trainer -------------------------------------------------------------------------------
+
+class Trainer:
+    def __init__(self, cfg: dict):
+        check_keys(cfg, SECTIONS, "the configuration's top level")
+        self.cfg = cfg
+        self.tcfg = {"steps": 1000, "checkpoint_every": 500, "validate_every": 500,
+                     "log_every": 10, "max_nonfinite": 20, "progress": True,
+                     **(cfg.get("train") or {})}
+        check_keys(self.tcfg, {"steps", "checkpoint_every", "validate_every", "log_every",
+                               "max_nonfinite", "progress"}, "train")
+        self.ocfg = {"lr": 2e-4, "warm_up_fraction": 0.01, "gradient_clip": 0.5,
+                     **(cfg.get("optimizer") or {})}
+        check_keys(self.ocfg, {"lr", "warm_up_fraction", "gradient_clip"}, "optimizer")
+        self.lcfg = {"mse": 1.0, "lpips": 0.05, "lpips_after_step": 150_000,
+                     "lpips_vgg": None, "lpips_lin": None, **(cfg.get("loss") or {})}
+        check_keys(self.lcfg, {"mse", "lpips", "lpips_after_step", "lpips_vgg", "lpips_lin"},
+                   "loss")
+        self.out = Path(cfg.get("output_dir", "outputs/train"))
+        self.rank, self.world, self.device = setup_distributed(cfg.get("device", "cpu"),
+                                                               cfg.get("threads"))
+        seed = int(cfg.get("seed", 0))
+        torch.manual_seed(seed + self.rank)
+        np.random.seed(seed + self.rank)
+        random.seed(seed + self.rank)
+
+        self.lpips = None
+        if self.lcfg["lpips"] > 0 and self.lcfg["lpips_after_step"] < self.tcfg["steps"]:
+            from usplat_dr.lpips import LPIPS
+
+            # Stops at start-up (not at step 150k) when the files are missing.
+            self.lpips = LPIPS.from_files(self.lcfg["lpips_vgg"],
+                                          self.lcfg["lpips_lin"]).to(self.device)
+
+        torch.manual_seed(seed)  # the same initial weights on every rank
+        self.model = model_from_config(cfg.get("model") or {}).to(self.device)
+        self.ddp = self.model
+        if self.world > 1:
+            self.ddp = torch.nn.parallel.DistributedDataParallel(self.model)
+        from usplat_dr.data.view_sampler import StepTracker
+
+        self.step_tracker = StepTracker()
+        dl = {"batch_size": 1, "num_workers": 0, **(cfg.get("data_loader") or {})}
+        check_keys(dl, {"batch_size", "num_workers"}, "data_loader")
+        self.batches = Batches(dataset_from_config(cfg.get("dataset") or {}, "train",
+                                                   self.step_tracker),
+                               dl["batch_size"], dl["num_workers"], self.step_tracker)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.ocfg["lr"])
+        self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            self.optimizer, self.ocfg["lr"], total_steps=self.tcfg["steps"] + 10,
+            pct_start=self.ocfg["warm_up_fraction"], cycle_momentum=False,
+            anneal_strategy="cos")
+        self.step = 0
+        self.skipped = 0
+        self.consecutive_bad = 0
+        self._stop_signal = None
+        self._val_batch = None
+
+    # -- checkpoints --
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out / "checkpoints" / "last.ckpt"
+
+    def save(self) -> Path | None:
+        if self.rank != 0:
+            return None
+        state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                 "scheduler": self.scheduler.state_dict(), "step": self.step,
+                 "rng": rng_state(), "data": self.batches.state(), "skipped": self.skipped,
+                 "config": self.cfg, "model_config": self.model.cfg.to_dict()}
+        return torch_save(state, self.checkpoint_path)
+
+    def resume(self, path: str | os.PathLike | None = None) -> bool:
+        """Continue from ``path`` (default: this run's last checkpoint). False when there is
+        none to resume from."""
+        path = Path(path) if path else self.checkpoint_path
+        if not path.is_file():
+            return False
+        # our own file: it holds RNG states (numpy arrays), so full unpickling is needed
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.step, self.skipped = state["step"], state["skipped"]
+        self.step_tracker.set_step(self.step)
+        self.batches.restore(state["data"])
+        set_rng_state(state["rng"])
+        log.info("resumed from %s at step %d", path, self.step)
+        return True
+
+    # -- one step --
+    def loss(self, out, target: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        pred = out.color
+        mse = (pred - target).square().mean()
+        loss = self.lcfg["mse"] * mse
+        parts = {"mse": mse.item()}
+        if self.lpips is not None and self.step >= self.lcfg["lpips_after_step"]:
+            lp = self.lpips(pred.flatten(0, 1), target.flatten(0, 1)).mean()
+            loss = loss + self.lcfg["lpips"] * lp
+            parts["lpips"] = lp.item()
+        return loss, parts
+
+    def train_step(self, batch: dict) -> dict | None:
+        self.ddp.train()
+        args = scene_args(batch, self.device)
+        target = batch["target"]["image"].to(self.device)
+        self.optimizer.zero_grad(set_to_none=True)
+        # BatchNorm statistics change in the forward pass: kept to be put back if the step
+        # is skipped (a NaN input would otherwise poison them for good)
+        buffers = {n: b.detach().clone() for n, b in self.model.named_buffers()}
+        out = self.ddp(*args, global_step=self.step)
+        loss, parts = self.loss(out, target)
+        loss.backward()
+        norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(),
+                                              self.ocfg["gradient_clip"])
+        finite = torch.isfinite(loss) & torch.isfinite(norm)
+        if self.world > 1:  # every rank takes the same decision
+            flag = finite.float().to(self.device)
+            dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+            finite = flag > 0
+        if not bool(finite):
+            self.skipped += 1
+            self.consecutive_bad += 1
+            log.warning("step %d: non-finite loss or gradient (loss %s, grad norm %s); step "
+                        "skipped (%d so far)", self.step, loss.item(), norm.item(), self.skipped)
+            self.optimizer.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                for n, b in self.model.named_buffers():
+                    if n in buffers:
+                        b.copy_(buffers[n])
+            return None
+        self.consecutive_bad = 0
+        self.optimizer.step()
+        self.scheduler.step()
+        with torch.no_grad():
+            mse = (out.color.clamp(0, 1) - target).square().mean((-3, -2, -1))
+            psnr = (-10 * torch.log10(mse.clamp(min=1e-10))).mean().item()
+        return {"loss": loss.item(), "psnr": psnr, "grad_norm": norm.item(),
+                "lr": self.scheduler.get_last_lr()[0], **parts}
+
+    # -- the loop --
+    def _on_signal(self, signum, frame):
+        self._stop_signal = signum
+        log.warning("signal %d: saving a checkpoint after this step", signum)
+
+    def fit(self) -> dict:
+        steps = self.tcfg["steps"]
+        self.out.mkdir(parents=True, exist_ok=True)
+        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        metrics_path = self.out / "metrics.csv"
+        writer = None
+        if self.rank == 0:
+            rows = []
+            if metrics_path.exists():  # keep the rows of the steps this run has kept
+                with open(metrics_path) as f:
+                    rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
+            f = open(metrics_path, "w", newline="")
+            fields = ["step", "loss", "mse", "lpips", "psnr", "grad_norm", "lr", "skipped",
+                      "steps_per_s", "time_s"]
+            writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+        bar = None
+        if self.rank == 0 and self.tcfg["progress"]:
+            from tqdm import tqdm
+
+            bar = tqdm(total=steps, initial=self.step, desc="train", dynamic_ncols=True)
+        start, t0, last = self.step, time.perf_counter(), {}
+        try:
+            while self.step < steps:
+                self.step_tracker.set_step(self.step)
+                batch = self.batches.next()
+                if self._val_batch is None:
+                    self._val_batch = self.validation_batch(batch)
+                stats = self.train_step(batch)
+                if stats is None and self.consecutive_bad >= self.tcfg["max_nonfinite"]:
+                    path = self.save()
+                    raise TrainingStopped(
+                        f"{self.consecutive_bad} steps in a row had a non-finite loss or "
+                        f"gradient (last at step {self.step}); stopped. The last good state "
+                        f"is in {path or self.checkpoint_path}: lower optimizer.lr or check "
+                        f"the data, then resume")
+                self.step += 1
+                if stats is not None:
+                    last = stats
+                elapsed = time.perf_counter() - t0
+                rate = (self.step - start) / max(elapsed, 1e-9)
+                if writer is not None and (self.step % self.tcfg["log_every"] == 0
+                                           or self.step == steps) and last:
+                    writer.writerow({"step": self.step, **last, "skipped": self.skipped,
+                                     "steps_per_s": rate, "time_s": elapsed})
+                    f.flush()
+                if bar is not None:
+                    bar.update(1)
+                    if last:
+                        bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
+                                        skipped=self.skipped)
+                if self.step % self.tcfg["checkpoint_every"] == 0 or self.step == steps:
+                    self.save()
+                if self.rank == 0 and (self.step % self.tcfg["validate_every"] == 0
+                                       or self.step == steps):
+                    self.validate()
+                if self._stop_signal is not None:
+                    self.save()
+                    log.warning("stopped by signal %d at step %d; resume with --resume",
+                                self._stop_signal, self.step)
+                    break
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+            if bar is not None:
+                bar.close()
+            if writer is not None:
+                f.close()
+        return {"step": self.step, "skipped": self.skipped, **last}
+
+    def validation_batch(self, fallback: dict) -> dict:
+        """The first example of the validation stage (the dataset's test folder) when there
+        is one, else ``fallback`` (a training batch)."""
+        from usplat_dr.data.dataset import ChunkDataset
+
+        try:
+            ds = dataset_from_config(self.cfg.get("dataset") or {}, "val")
+            example = next(iter(ds), None) if isinstance(ds, ChunkDataset) else None
+        except (ValueError, FileNotFoundError, StopIteration):
+            example = None
+        if example is None:
+            return {side: {k: v[:1] for k, v in fallback[side].items()}
+                    for side in ("context", "target")}
+        from torch.utils.data import default_collate
+
+        return default_collate([example])
+
+    @torch.no_grad()
+    def validate(self) -> Path | None:
+        """A PNG grid of the validation scene: context | target | prediction | depth, a row
+        per target view."""
+        import numpy as np
+
+        from usplat_dr.images import colorize_depth, grid, save_png
+
+        batch = self._val_batch
+        if batch is None:
+            return None
+        self.model.eval()
+        out = self.model(*scene_args(batch, self.device))
+
+        def img(t):
+            return t.detach().cpu().permute(1, 2, 0).numpy()
+
+        ctx = [img(c) for c in batch["context"]["image"][0]]
+        rows = []
+        for i, gt in enumerate(batch["target"]["image"][0]):
+            depth = colorize_depth(out.depth[0, i].cpu().numpy(), out.alpha[0, i].cpu().numpy())
+            rows.append([*ctx, img(gt), np.clip(img(out.color[0, i]), 0, 1), depth])
+        path = self.out / "validation" / f"step_{self.step:07d}.png"
+        save_png(path, grid(rows))
+        return path
+
+
+def train(cfg: dict, resume: bool = False) -> dict:
+    trainer = Trainer(cfg)
+    if resume and not trainer.resume():
+        log.info("no checkpoint in %s: starting from step 0", trainer.checkpoint_path.parent)
+    result = trainer.fit()
+    if dist.is_initialized():
+        dist.destroy_process_group()
+    return result
+
