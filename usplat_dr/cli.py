@@ -1,6 +1,7 @@
 """The ``usplat`` command line."""
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -90,14 +91,41 @@ def _params(args) -> int:
 
 
 def _train(args) -> int:
-    import json
-
     from usplat_dr.config import load_config
     from usplat_dr.training import train
 
     cfg = load_config(args.config or ["train/configs/synthetic_tiny.yaml"], args.overrides)
     result = train(cfg, resume=args.resume)
     print(json.dumps(result))
+    return 0
+
+
+def _eval(args) -> int:
+    from usplat_dr.evaluation import evaluate, load_model, synthetic_indices
+
+    indices = dict(item.split("=", 1) for item in args.index) if args.index else None
+    if indices is None:
+        indices = synthetic_indices(args.data, args.splits)
+        if not indices:
+            print(f"no evaluation_index_*.json with scenes in {args.data}; pass --index "
+                  f"NAME=PATH (e.g. standard=assets/evaluation_index_re10k.json)")
+            return 2
+    lpips = None
+    if args.lpips_vgg or args.lpips_lin:
+        from usplat_dr.lpips import LPIPS
+
+        lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)
+    model, step = load_model(args.checkpoint, args.device)
+    dataset = {"name": args.dataset, "roots": [args.data], "image_shape": args.image_shape}
+    summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def _demo(args) -> int:
+    from usplat_dr.demo_job import run_demo
+
+    run_demo(args.out, "quick" if args.quick else "full", jobs=args.jobs)
     return 0
 
 
@@ -142,6 +170,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("overrides", nargs="*", metavar="key.sub=value",
                    help="dotted overrides, e.g. optimizer.lr=1e-4 train.steps=100")
     p.set_defaults(func=_train)
+
+    p = sub.add_parser("eval", help="evaluate a trained model with the field's protocol "
+                       "(per-scene CSV, summary JSON, renders)")
+    p.add_argument("--checkpoint", required=True, help="usplat train's last.ckpt")
+    p.add_argument("--data", required=True, help="dataset root (chunk format)")
+    p.add_argument("--dataset", default="synth", choices=["synth", "re10k", "acid", "dtu"])
+    p.add_argument("--index", nargs="+", metavar="SPLIT=PATH",
+                   help="evaluation index JSON(s); default: the synthetic set's own splits")
+    p.add_argument("--splits", nargs="+", help="synthetic splits to evaluate (default: all)")
+    p.add_argument("--image-shape", type=int, nargs=2, default=[256, 256], metavar=("H", "W"))
+    p.add_argument("--lpips-vgg", help="torchvision vgg16-397923af.pth (for LPIPS)")
+    p.add_argument("--lpips-lin", help="lpips/weights/v0.1/vgg.pth (for LPIPS)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--out", default="outputs/eval")
+    p.set_defaults(func=_eval)
+
+    p = sub.add_parser("demo", help="the main job: synthetic data, train (a) and (c), "
+                       "evaluate, write a report (about 15 minutes on 2 CPU cores)")
+    p.add_argument("--out", default="outputs/demo")
+    p.add_argument("--quick", action="store_true", help="a tiny budget (CI): a minute or two")
+    p.add_argument("--jobs", type=int, default=0, help="Mitsuba worker processes (0: auto)")
+    p.set_defaults(func=_demo)
 
     from usplat_dr.data.synth.scenes import KINDS
 
