@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # usplat-dr's entry point for a fresh Debian/Ubuntu machine with Python >= 3.10.
 #
-#   bash scripts/run.sh demo [ARGS]    render the demo (outputs/render-demo/ by default)
+#   bash scripts/run.sh demo [ARGS]    the main job: synthetic data, train (a) and (c), evaluate,
+#                                      report (outputs/demo/report.md; --quick: small budget)
 #   bash scripts/run.sh test [ARGS]    run the test suite (pytest ARGS)
 #   bash scripts/run.sh doctor         report versions, libLLVM, backends, GPU
 #   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench_rasterizer.py)
@@ -74,7 +75,7 @@ command=${1:-}
 [ $# -gt 0 ] && shift
 case "$command" in
     setup) setup ;;
-    demo) setup; cd "$ROOT"; exec "$VENV/bin/usplat" render-demo "$@" ;;
+    demo) setup; cd "$ROOT"; exec "$VENV/bin/usplat" demo "$@" ;;
     test) setup; cd "$ROOT"; exec "$VENV/bin/python" -m pytest "$@" ;;
     doctor) setup; exec "$VENV/bin/usplat" doctor ;;
     bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench_rasterizer.py "$@" ;;

@@ -122,6 +122,51 @@ def _eval(args) -> int:
     return 0
 
 
+def _one_example(args):
+    from usplat_dr.evaluation import load_example, load_model, synthetic_indices
+
+    index = args.index or synthetic_indices(args.data, ["standard"])["standard"]
+    dataset = {"name": args.dataset, "roots": [args.data], "image_shape": args.image_shape}
+    model, _ = load_model(args.checkpoint, args.device)
+    return model, load_example(dataset, index, args.scene)
+
+
+def _render(args) -> int:
+    import numpy as np
+
+    from usplat_dr.images import colorize_depth
+    from usplat_dr.video import render_path, write_video
+
+    model, batch = _one_example(args)
+    colors, depths = render_path(model, batch, args.frames, device=args.device)
+    valid = depths[np.isfinite(depths) & (depths > 0)]
+    lo, hi = (np.percentile(valid, 2), np.percentile(valid, 98)) if valid.size else (1, 2)
+    frames = np.concatenate([colors, np.stack([colorize_depth(d, near=lo, far=hi)
+                                               for d in depths])], axis=2)
+    path = write_video(frames, Path(args.out))
+    print(f"wrote {path} ({len(frames)} frames: colour | depth)")
+    return 0
+
+
+def _export_ply(args) -> int:
+    import torch
+
+    from usplat_dr.ply import write_ply
+    from usplat_dr.training import scene_args
+
+    model, batch = _one_example(args)
+    with torch.no_grad():
+        out = model(*scene_args(batch, torch.device(args.device)), render=False)
+    n = out.num_targets
+    if not 0 <= args.target < n:
+        print(f"--target must be in 0..{n - 1} (the scene's target views)")
+        return 2
+    path = write_ply(args.out, out.target(0, args.target), min_opacity=args.min_opacity)
+    print(f"wrote {path}: the Gaussians predicted for target {args.target} of "
+          f"{batch['scene'][0]}")
+    return 0
+
+
 def _demo(args) -> int:
     from usplat_dr.demo_job import run_demo
 
@@ -185,6 +230,30 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--out", default="outputs/eval")
     p.set_defaults(func=_eval)
+
+    for name, func, helptext in (
+            ("render", _render, "a video (mp4 with ffmpeg, else GIF) along a path between the "
+             "context views and a wobble around them"),
+            ("export-ply", _export_ply, "the Gaussians predicted for one target view, as a "
+             "standard 3DGS PLY")):
+        p = sub.add_parser(name, help=helptext)
+        p.add_argument("--checkpoint", required=True, help="usplat train's last.ckpt")
+        p.add_argument("--data", required=True, help="dataset root (chunk format)")
+        p.add_argument("--dataset", default="synth", choices=["synth", "re10k", "acid", "dtu"])
+        p.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
+                       "standard split)")
+        p.add_argument("--scene", help="scene key (default: the first of the index)")
+        p.add_argument("--image-shape", type=int, nargs=2, default=[256, 256],
+                       metavar=("H", "W"))
+        p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+        if name == "render":
+            p.add_argument("--frames", type=int, default=60)
+            p.add_argument("--out", default="outputs/render/video")
+        else:
+            p.add_argument("--target", type=int, default=0, help="target view index")
+            p.add_argument("--min-opacity", type=float, default=0.0)
+            p.add_argument("--out", default="outputs/export/gaussians.ply")
+        p.set_defaults(func=func)
 
     p = sub.add_parser("demo", help="the main job: synthetic data, train (a) and (c), "
                        "evaluate, write a report (about 15 minutes on 2 CPU cores)")

@@ -40,7 +40,13 @@ def load_model(checkpoint: str, device: torch.device | str = "cpu"):
     if "model_config" not in state:
         raise ValueError(f"{path} is not a usplat training checkpoint (no 'model_config'); "
                          f"an MVSplat checkpoint loads with UniqueSplat.load_mvsplat")
-    model = UniqueSplat(UniqueSplatCfg.from_dict(state["model_config"]))
+    resnet_log = logging.getLogger("usplat_dr.model.hypernet.resnet")
+    level = resnet_log.level
+    resnet_log.setLevel(logging.ERROR)  # its weights come from the checkpoint, not a file
+    try:
+        model = UniqueSplat(UniqueSplatCfg.from_dict(state["model_config"]))
+    finally:
+        resnet_log.setLevel(level)
     model.load_state_dict(state["model"])
     return model.to(device).eval(), state.get("step", 0)
 
@@ -155,3 +161,15 @@ def synthetic_indices(root: str | Path, splits=None) -> dict[str, str]:
     # skip splits without scenes
     return {s: p for s, p in found.items()
             if any(v is not None for v in json.loads(Path(p).read_text()).values())}
+
+
+def load_example(dataset: dict, index: str, scene: str | None = None) -> dict:
+    """One evaluation example as a batch of 1: ``scene`` (default: the index's first)."""
+    from usplat_dr.training import dataset_from_config
+
+    ds = dataset_from_config({**dataset, "evaluation_index": index}, "test")
+    for example in ds:
+        if scene is None or example["scene"] == scene:
+            return default_collate([example])
+    raise KeyError(f"scene {scene!r} is not in {dataset['roots']} with index {index} (or it "
+                   f"was skipped; see the dataset summary above)")
