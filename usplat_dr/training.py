@@ -346,6 +346,14 @@ class Trainer:
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
+        board = None
+        if self.rank == 0:
+            try:  # TensorBoard when it is installed (optional)
+                from torch.utils.tensorboard import SummaryWriter
+
+                board = SummaryWriter(str(self.out / "tensorboard"), purge_step=self.step)
+            except ImportError:
+                pass
         bar = None
         if self.rank == 0 and self.tcfg["progress"]:
             from tqdm import tqdm
@@ -376,6 +384,9 @@ class Trainer:
                     writer.writerow({"step": self.step, **last, "skipped": self.skipped,
                                      "steps_per_s": rate, "time_s": elapsed})
                     f.flush()
+                    if board is not None:
+                        for key, value in last.items():
+                            board.add_scalar(f"train/{key}", value, self.step)
                 if bar is not None:
                     bar.update(1)
                     if last:
@@ -398,6 +409,8 @@ class Trainer:
                 bar.close()
             if writer is not None:
                 f.close()
+            if board is not None:
+                board.close()
         return {"step": self.step, "skipped": self.skipped, **last}
 
     def validation_batch(self, fallback: dict) -> dict:

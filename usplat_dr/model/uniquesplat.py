@@ -47,7 +47,8 @@ class UniqueSplatCfg:
     # Layers whose weights the hypernetworks generate: W (H_a) for all of them, and W + Delta W
     # (H_s) for ``specific_layers``. Delta W on the last Gaussian-head conv by default: its
     # input is shared by all targets, so a target costs a rank-r convolution, not a head
-    # (BENCHMARKS.md: both convs per target cost (c)/(a) = 1.8 at 256x256 on our CPU).
+    # (BENCHMARKS.md: both convs per target cost (c)/(a) = 1.69 at 256x256 on our CPU,
+    # against 1.11).
     target_layers: tuple[str, ...] = ("to_gaussians.0", "to_gaussians.2")
     specific_layers: tuple[str, ...] = ("to_gaussians.2",)
     embed_dim: int = 512  # e_a and e_s (paper: 512)
