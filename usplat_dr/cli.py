@@ -140,7 +140,8 @@ def _render(args) -> int:
     model, batch = _one_example(args)
     colors, depths = render_path(model, batch, args.frames, device=args.device)
     valid = depths[np.isfinite(depths) & (depths > 0)]
-    lo, hi = (np.percentile(valid, 2), np.percentile(valid, 98)) if valid.size else (1, 2)
+    lo, hi = ((float(np.percentile(valid, 2)), float(np.percentile(valid, 98))) if valid.size
+              else (1.0, 2.0))
     frames = np.concatenate([colors, np.stack([colorize_depth(d, near=lo, far=hi)
                                                for d in depths])], axis=2)
     path = write_video(frames, Path(args.out))

@@ -64,8 +64,13 @@ def _curves(runs: dict, path: Path) -> Path:
         with open(run / "metrics.csv") as f:
             rows = list(csv.DictReader(f))
         steps = [int(r["step"]) for r in rows]
-        axes[0].plot(steps, [float(r["loss"]) for r in rows], label=VARIANTS[variant])
-        axes[1].plot(steps, [float(r["psnr"]) for r in rows], label=VARIANTS[variant])
+        for ax, key in ((axes[0], "loss"), (axes[1], "psnr")):
+            values = [float(r[key]) for r in rows]
+            line, = ax.plot(steps, values, alpha=0.25, linewidth=0.8)
+            w = max(1, len(values) // 15)  # moving average over ~1/15 of the run
+            smooth = [sum(values[max(0, i - w + 1):i + 1]) / len(values[max(0, i - w + 1):i + 1])
+                      for i in range(len(values))]
+            ax.plot(steps, smooth, color=line.get_color(), label=VARIANTS[variant])
     axes[0].set(xlabel="step", ylabel="training loss (MSE)", yscale="log")
     axes[1].set(xlabel="step", ylabel="training PSNR (dB)")
     for ax in axes:

@@ -13,6 +13,7 @@ context | ground truth | prediction | depth.
 import csv
 import json
 import logging
+import os
 import resource
 import statistics
 import time
@@ -28,7 +29,7 @@ from usplat_dr.metrics import psnr, ssim
 log = logging.getLogger(__name__)
 
 
-def load_model(checkpoint: str, device: torch.device | str = "cpu"):
+def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"):
     """A ``UniqueSplat`` from a training checkpoint (``usplat train``'s ``last.ckpt``)."""
     from usplat_dr.model import UniqueSplat, UniqueSplatCfg
 
