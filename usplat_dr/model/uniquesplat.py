@@ -17,7 +17,11 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
-from usplat_dr.model.encoder.primary import PrimaryNetwork, PrimaryNetworkCfg
+from usplat_dr.model.encoder.primary import (
+    PrimaryNetwork,
+    PrimaryNetworkCfg,
+    config_from_dict,
+)
 from usplat_dr.model.hypernet.hypernetwork import (
     AgnosticHypernetwork,
     ConvSpec,
@@ -85,17 +89,10 @@ class UniqueSplatCfg:
     @classmethod
     def from_dict(cls, d: dict) -> "UniqueSplatCfg":
         """From plain values (YAML/JSON): ``primary`` a dict of ``PrimaryNetworkCfg`` fields."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown UniqueSplatCfg keys {unknown}; known: {sorted(known)}")
         d = dict(d)
         if isinstance(d.get("primary"), dict):
             d["primary"] = PrimaryNetworkCfg.from_dict(d["primary"])
-        for k, v in list(d.items()):
-            if isinstance(v, list):
-                d[k] = tuple(v)
-        return replace(cls(), **d)
+        return config_from_dict(cls, d)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

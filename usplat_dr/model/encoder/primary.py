@@ -13,6 +13,17 @@ from usplat_dr.model.gaussian_adapter import GaussianAdapter
 from usplat_dr.model.types import Gaussians
 
 
+def config_from_dict(cls, d: dict):
+    """A frozen config dataclass from plain values (YAML/JSON): unknown keys are an error
+    naming the known ones; lists become tuples; missing keys keep their defaults."""
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} keys {unknown}; known: {sorted(known)}")
+    tuples = {k: tuple(v) for k, v in d.items() if isinstance(v, list)}
+    return replace(cls(), **{**d, **tuples})
+
+
 @dataclass(frozen=True)
 class PrimaryNetworkCfg:
     """MVSplat's encoder settings; the defaults are its RealEstate10K configuration
@@ -76,12 +87,7 @@ class PrimaryNetworkCfg:
 
     @classmethod
     def from_dict(cls, d: dict) -> "PrimaryNetworkCfg":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"unknown PrimaryNetworkCfg keys {unknown}; known: {sorted(known)}")
-        tuples = {k: tuple(v) for k, v in d.items() if isinstance(v, list)}
-        return replace(cls(), **{**d, **tuples})
+        return config_from_dict(cls, d)
 
 
 class PrimaryNetwork(nn.Module):
