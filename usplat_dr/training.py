@@ -397,9 +397,14 @@ class Trainer:
                 if self.rank == 0 and (self.step % self.tcfg["validate_every"] == 0
                                        or self.step == steps):
                     self.validate()
-                if self._stop_signal is not None:
+                stop = self._stop_signal is not None
+                if self.world > 1:  # all ranks stop after the same step (else: a hang)
+                    flag = torch.tensor(float(stop), device=self.device)
+                    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+                    stop = bool(flag > 0)
+                if stop:
                     self.save()
-                    log.warning("stopped by signal %d at step %d; resume with --resume",
+                    log.warning("stopped by signal %s at step %d; resume with --resume",
                                 self._stop_signal, self.step)
                     break
         finally:
