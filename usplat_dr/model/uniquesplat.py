@@ -20,6 +20,7 @@ from torch import Tensor, nn
 from usplat_dr.model.encoder.primary import (
     PrimaryNetwork,
     PrimaryNetworkCfg,
+    check_finite,
     config_from_dict,
 )
 from usplat_dr.model.hypernet.hypernetwork import (
@@ -263,6 +264,10 @@ class UniqueSplat(nn.Module):
                                ("target_far", target_far, (b, n))):
             if tuple(t.shape) != shape:
                 raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
+        check_finite(target_intrinsics=target_intrinsics, target_extrinsics=target_extrinsics,
+                     target_near=target_near, target_far=target_far)
+        if (target_near <= 0).any() or (target_far <= target_near).any():
+            raise ValueError("target_near must be > 0 and target_far > target_near")
         return n
 
     def forward(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],

@@ -4,6 +4,7 @@ official checkpoints strictly and computes the same Gaussians."""
 from dataclasses import dataclass, fields, replace
 from math import lcm
 
+import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
@@ -11,6 +12,15 @@ from usplat_dr.model.encoder.backbone import BackboneMultiview
 from usplat_dr.model.encoder.depth_predictor import DepthOutputs, DepthPredictorMultiView
 from usplat_dr.model.gaussian_adapter import GaussianAdapter
 from usplat_dr.model.types import Gaussians
+
+
+def check_finite(**tensors) -> None:
+    """ValueError naming the first argument holding NaN or Inf (one reduction per tensor)."""
+    for name, t in tensors.items():
+        if not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise ValueError(f"{name} holds {bad} NaN or Inf value(s); replace them (e.g. "
+                             f"torch.nan_to_num for images) or drop the scene")
 
 
 def config_from_dict(cls, d: dict):
@@ -150,6 +160,10 @@ class PrimaryNetwork(nn.Module):
                                ("near", near, (b, v)), ("far", far, (b, v))):
             if tuple(t.shape) != shape:
                 raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
+        check_finite(images=images, intrinsics=intrinsics, extrinsics=extrinsics, near=near,
+                     far=far)
+        if (near <= 0).any() or (far <= near).any():
+            raise ValueError("near must be > 0 and far > near for every view")
 
     def encode(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
                extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
