@@ -92,9 +92,9 @@ def _params(args) -> int:
 
 def _train(args) -> int:
     from usplat_dr.config import load_config
-    from usplat_dr.training import train
+    from usplat_dr.training import CONFIG_DIR, train
 
-    cfg = load_config(args.config or ["train/configs/synthetic_tiny.yaml"], args.overrides)
+    cfg = load_config(args.config or [CONFIG_DIR / "synthetic_tiny.yaml"], args.overrides)
     result = train(cfg, resume=args.resume)
     print(json.dumps(result))
     return 0

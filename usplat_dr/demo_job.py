@@ -32,14 +32,18 @@ BUDGETS = {
     "quick": Budget(train_scenes=3, test_scenes=3, frames=12, size=32, steps=12, spp=8),
 }
 VARIANTS = {"baseline": "(a) primary network", "full": "(c) UniqueSplat"}
-CONFIG = Path(__file__).parents[1] / "train" / "configs" / "synthetic_tiny.yaml"
+def _config() -> Path:
+    from usplat_dr.training import CONFIG_DIR
+
+    return CONFIG_DIR / "synthetic_tiny.yaml"
 
 
 def training_config(data: Path, out: Path, budget: Budget, variant: str) -> dict:
     from usplat_dr.config import load_config
 
     gap_max = max(4, budget.frames // 3)
-    return load_config([CONFIG] if CONFIG.is_file() else [], [
+    config = _config()
+    return load_config([config] if config.is_file() else [], [
         f"dataset.roots=[{data}]", f"dataset.image_shape=[{budget.size},{budget.size}]",
         f"output_dir={out}", f"model.variant={variant}", f"train.steps={budget.steps}",
         f"train.checkpoint_every={max(budget.steps // 4, 1)}",

@@ -66,6 +66,21 @@ def depth_metrics(pred_depth: torch.Tensor, alpha: torch.Tensor, gt: torch.Tenso
             "delta1": (ratio < 1.25).double().mean().item()}
 
 
+def save_comparison(path: str | os.PathLike, batch: dict, out) -> Path:
+    """A PNG of scene 0 of ``batch``: a row per target view with the context views, the
+    ground truth, the prediction and its depth (``out``: a ``UniqueSplatOutput``)."""
+    from usplat_dr.images import colorize_depth, grid, save_png
+
+    def img(t):
+        return t.detach().clamp(0, 1).permute(1, 2, 0).cpu().numpy()
+
+    ctx = [img(c) for c in batch["context"]["image"][0]]
+    rows = [[*ctx, img(gt), img(out.color[0, j]),
+             colorize_depth(out.depth[0, j].cpu().numpy(), out.alpha[0, j].cpu().numpy())]
+            for j, gt in enumerate(batch["target"]["image"][0])]
+    return save_png(path, grid(rows))
+
+
 def peak_memory_gib(device: torch.device) -> float:
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2**30
@@ -78,7 +93,6 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
              progress: bool = True, label: str = "") -> dict:
     """Evaluate ``model`` on each split (``indices``: split name -> evaluation index JSON) of
     ``dataset`` (a config section: name, roots, image_shape). Returns the summary."""
-    from usplat_dr.images import colorize_depth, grid, save_png
     from usplat_dr.training import dataset_from_config, scene_args
 
     device = torch.device(device)
@@ -114,14 +128,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
             rows.append(row)
             scenes.append(row)
             if i < images_per_split:
-                ctx = [c.permute(1, 2, 0).numpy() for c in batch["context"]["image"][0]]
-                sheet = []
-                for j in range(len(gt)):
-                    depth = colorize_depth(result.depth[0, j].cpu().numpy(),
-                                           result.alpha[0, j].cpu().numpy())
-                    sheet.append([*ctx, gt[j].permute(1, 2, 0).cpu().numpy(),
-                                  pred[j].clamp(0, 1).permute(1, 2, 0).cpu().numpy(), depth])
-                save_png(out / "renders" / split / f"{example['scene']}.png", grid(sheet))
+                save_comparison(out / "renders" / split / f"{example['scene']}.png", batch,
+                                result)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(psnr=f"{statistics.mean(r['psnr'] for r in scenes):.2f}")

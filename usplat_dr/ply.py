@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz
 from usplat_dr.model.types import Gaussians
 
 REST = 45  # degree-3 layout: 15 coefficients x 3 channels
@@ -29,14 +30,10 @@ REST = 45  # degree-3 layout: 15 coefficients x 3 channels
 @functools.lru_cache(maxsize=4)
 def _basis_change(degree: int) -> np.ndarray:
     """M with B_mvsplat(d) = M B_3dgs(d) on the unit sphere, (degree+1)^2 square, float64."""
+    from usplat_dr.model.sh_rotation import fibonacci_sphere
     from usplat_dr.render.sh import sh_basis
 
-    n = 200
-    i = np.arange(n) + 0.5
-    z = 1 - 2 * i / n
-    phi = np.pi * (1 + 5**0.5) * i
-    r = np.sqrt(1 - z * z)
-    x, y = r * np.cos(phi), r * np.sin(phi)
+    x, y, z = fibonacci_sphere(200).numpy().T
     k = (degree + 1) ** 2
 
     def values(basis):
@@ -56,32 +53,6 @@ def sh_to_3dgs(harmonics: Tensor) -> Tensor:
     m = torch.tensor(_basis_change(degree), dtype=harmonics.dtype, device=harmonics.device)
     # f = c_mv . B_mv = c_mv . (M B_std) = (M^T c_mv) . B_std
     return harmonics[..., :d_sh] @ m
-
-
-def _quat_wxyz(rot: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) of rotation matrices [G, 3, 3] (Shepperd's method)."""
-    t = np.trace(rot, axis1=1, axis2=2)
-    q = np.zeros((len(rot), 4))
-    cases = np.stack([t, rot[:, 0, 0], rot[:, 1, 1], rot[:, 2, 2]], 1).argmax(1)
-    for c in range(4):
-        s = cases == c
-        r = rot[s]
-        if c == 0:
-            w = np.sqrt(1 + t[s]) / 2
-            q[s] = np.stack([w, (r[:, 2, 1] - r[:, 1, 2]) / (4 * w),
-                             (r[:, 0, 2] - r[:, 2, 0]) / (4 * w),
-                             (r[:, 1, 0] - r[:, 0, 1]) / (4 * w)], 1)
-        else:
-            i = c - 1
-            j, k = (i + 1) % 3, (i + 2) % 3
-            v = np.sqrt(1 + r[:, i, i] - r[:, j, j] - r[:, k, k]) / 2
-            out = np.zeros((s.sum(), 4))
-            out[:, 0] = (r[:, k, j] - r[:, j, k]) / (4 * v)
-            out[:, 1 + i] = v
-            out[:, 1 + j] = (r[:, j, i] + r[:, i, j]) / (4 * v)
-            out[:, 1 + k] = (r[:, k, i] + r[:, i, k]) / (4 * v)
-            q[s] = out
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def write_ply(path: str | os.PathLike, gaussians: Gaussians, sh_basis: str = "mvsplat",
@@ -110,7 +81,7 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians, sh_basis: str = "mv
         **{f"f_rest_{i}": rest.reshape(g, REST)[:, i] for i in range(REST)},
         "opacity": torch.logit(op).numpy(),
         **{f"scale_{i}": scales[:, i].log().numpy() for i in range(3)},
-        **{f"rot_{i}": q for i, q in enumerate(_quat_wxyz(evecs.numpy()).T)},
+        **{f"rot_{i}": q for i, q in enumerate(matrix_to_quat_wxyz(evecs.numpy()).T)},
     }
     data = np.empty(g, dtype=[(k, "<f4") for k in cols])
     for k, v in cols.items():

@@ -27,6 +27,9 @@ from usplat_dr.io import torch_save
 
 log = logging.getLogger(__name__)
 
+#: The shipped configurations (train/configs/ in the repository).
+CONFIG_DIR = Path(__file__).parents[1] / "train" / "configs"
+
 SECTIONS = {"seed", "output_dir", "device", "threads", "model", "dataset", "data_loader",
             "optimizer", "loss", "train", "name"}
 
@@ -142,10 +145,10 @@ class Batches:
     """An endless stream of batches over epochs, with a position (epoch, batches taken in the
     epoch) that a resumed run replays to: the same batches in the same order."""
 
-    def __init__(self, dataset, batch_size: int, num_workers: int, step_tracker):
+    def __init__(self, dataset, batch_size: int, num_workers: int):
         from torch.utils.data import DataLoader
 
-        self.dataset, self.step_tracker = dataset, step_tracker
+        self.dataset = dataset
         self.loader = DataLoader(dataset, batch_size=batch_size, num_workers=num_workers,
                                  persistent_workers=False)
         self.epoch, self.taken = 0, 0
@@ -206,9 +209,11 @@ class Trainer:
         self.rank, self.world, self.device = setup_distributed(cfg.get("device", "cpu"),
                                                                cfg.get("threads"))
         seed = int(cfg.get("seed", 0))
-        torch.manual_seed(seed + self.rank)
-        np.random.seed(seed + self.rank)
-        random.seed(seed + self.rank)
+        # The same seed on every rank: identical initial weights (DDP would broadcast rank 0's
+        # anyway); the data is sharded by the dataset and its samplers have their own seeds.
+        torch.manual_seed(seed)
+        np.random.seed(seed)
+        random.seed(seed)
 
         self.lpips = None
         if self.lcfg["lpips"] > 0 and self.lcfg["lpips_after_step"] < self.tcfg["steps"]:
@@ -218,7 +223,6 @@ class Trainer:
             self.lpips = LPIPS.from_files(self.lcfg["lpips_vgg"],
                                           self.lcfg["lpips_lin"]).to(self.device)
 
-        torch.manual_seed(seed)  # the same initial weights on every rank
         self.model = model_from_config(cfg.get("model") or {}).to(self.device)
         self.ddp = self.model
         if self.world > 1:
@@ -230,7 +234,7 @@ class Trainer:
         check_keys(dl, {"batch_size", "num_workers"}, "data_loader")
         self.batches = Batches(dataset_from_config(cfg.get("dataset") or {}, "train",
                                                    self.step_tracker),
-                               dl["batch_size"], dl["num_workers"], self.step_tracker)
+                               dl["batch_size"], dl["num_workers"])
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.ocfg["lr"])
         self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
             self.optimizer, self.ocfg["lr"], total_steps=self.tcfg["steps"] + 10,
@@ -439,27 +443,14 @@ class Trainer:
     def validate(self) -> Path | None:
         """A PNG grid of the validation scene: context | target | prediction | depth, a row
         per target view."""
-        import numpy as np
+        from usplat_dr.evaluation import save_comparison
 
-        from usplat_dr.images import colorize_depth, grid, save_png
-
-        batch = self._val_batch
-        if batch is None:
+        if self._val_batch is None:
             return None
         self.model.eval()
-        out = self.model(*scene_args(batch, self.device))
-
-        def img(t):
-            return t.detach().cpu().permute(1, 2, 0).numpy()
-
-        ctx = [img(c) for c in batch["context"]["image"][0]]
-        rows = []
-        for i, gt in enumerate(batch["target"]["image"][0]):
-            depth = colorize_depth(out.depth[0, i].cpu().numpy(), out.alpha[0, i].cpu().numpy())
-            rows.append([*ctx, img(gt), np.clip(img(out.color[0, i]), 0, 1), depth])
-        path = self.out / "validation" / f"step_{self.step:07d}.png"
-        save_png(path, grid(rows))
-        return path
+        out = self.model(*scene_args(self._val_batch, self.device))
+        return save_comparison(self.out / "validation" / f"step_{self.step:07d}.png",
+                               self._val_batch, out)
 
 
 def train(cfg: dict, resume: bool = False) -> dict:

@@ -19,9 +19,9 @@ log = logging.getLogger(__name__)
 
 
 def _quat(m: torch.Tensor) -> torch.Tensor:
-    from usplat_dr.ply import _quat_wxyz
+    from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz
 
-    return torch.from_numpy(_quat_wxyz(m[None].double().numpy())[0])
+    return torch.from_numpy(matrix_to_quat_wxyz(m[None].double().numpy())[0])
 
 
 def _matrix(q: torch.Tensor) -> torch.Tensor:

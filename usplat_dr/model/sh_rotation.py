@@ -54,16 +54,20 @@ def real_sh(d: Float[Tensor, "*batch 3"], degree: int) -> Float[Tensor, "*batch 
     return torch.stack(out, dim=-1)
 
 
-@functools.lru_cache(maxsize=8)
-def _probe(degree: int) -> tuple[Tensor, list[Tensor]]:
-    """Probe directions (a Fibonacci sphere, enough points for degree 4) and, per degree, the
-    pseudo-inverse of their SH values, float64 on the CPU."""
-    n = 64
+def fibonacci_sphere(n: int) -> Float[Tensor, "n 3"]:
+    """``n`` nearly uniform unit directions (a Fibonacci lattice), float64."""
     i = torch.arange(n, dtype=torch.float64) + 0.5
     z = 1 - 2 * i / n
     phi = math.pi * (1 + 5**0.5) * i
     r = (1 - z * z).sqrt()
-    dirs = torch.stack([r * phi.cos(), r * phi.sin(), z], -1)
+    return torch.stack([r * phi.cos(), r * phi.sin(), z], -1)
+
+
+@functools.lru_cache(maxsize=8)
+def _probe(degree: int) -> tuple[Tensor, list[Tensor]]:
+    """Probe directions (64 on a Fibonacci sphere, enough for degree 4) and, per degree, the
+    pseudo-inverse of their SH values, float64 on the CPU."""
+    dirs = fibonacci_sphere(64)
     y = real_sh(dirs, degree)
     return dirs, [torch.linalg.pinv(y[:, deg * deg:(deg + 1) ** 2])
                   for deg in range(degree + 1)]
