@@ -59,7 +59,7 @@ def test_cli_rejects_bad_arguments():
     "usplat_dr.data.view_sampler", "usplat_dr.data.dataset", "usplat_dr.data.synth",
     "usplat_dr.data.synth.textures", "usplat_dr.data.synth.scenes",
     "usplat_dr.model.encoder.primary", "usplat_dr.model.sh_rotation",
-    "usplat_dr.model.hypernet.resnet"])
+    "usplat_dr.model.hypernet.resnet", "usplat_dr.bench_job"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module))
     assert result.attempted > 0 and result.failed == 0

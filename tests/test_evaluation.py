@@ -97,3 +97,25 @@ def test_demo_quick_end_to_end(tmp_path):
     from usplat_dr.ply import read_ply
 
     assert read_ply(tmp_path / "g.ply")["means"].shape == (2 * 32 * 32, 3)
+
+    # the report's stress, bench and stability sections
+    assert "### Worst cases" in text and "## Speed against accuracy" in text
+    assert "view-specific H_s" in text  # gradient norms of the hypernetwork branches
+    import csv
+
+    with open(tmp_path / "bench_demo" / "bench.csv") as f:
+        rows = list(csv.DictReader(f))
+    by = {(r["config"], r["prune"], r["render_size"]): r for r in rows}
+    assert len(by) == len(rows) == 2 * (6 + 1)  # 2 models x (6 budgets at 32 px + 16 px)
+    for config in ("tiny (a)", "tiny (c)"):
+        # exact culling: same PSNR (float32 summation order only)
+        assert abs(float(by[(config, "cull", "32")]["psnr_change_db"])) < 1e-3
+        assert float(by[(config, "keep25%", "32")]["kept_fraction"]) <= 0.25 + 1e-6
+        assert float(by[(config, "cull", "32")]["gaussians_per_view"]) <= 2 * 32 * 32
+
+    # `usplat bench` reuses the demo's trained runs (same folder) and adds nothing to train
+    assert main(["-q", "bench", "--quick", "--out", str(tmp_path), "--configs",
+                 "tiny:a,tiny:c", "--prunes", "all,cull", "--render-sizes", "32"]) == 0
+    assert (tmp_path / "bench" / "bench.png").is_file()
+    summary = json.loads((tmp_path / "bench" / "summary.json").read_text())
+    assert summary["pruning"]["cull"]["safe"]

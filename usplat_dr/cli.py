@@ -175,6 +175,23 @@ def _demo(args) -> int:
     return 0
 
 
+def _bench(args) -> int:
+    from usplat_dr.bench_job import DEFAULT_CONFIGS, PRUNES, BenchConfig, run_bench
+
+    configs = ([BenchConfig.parse(c) for c in args.configs.split(",")] if args.configs
+               else DEFAULT_CONFIGS)
+    prunes = PRUNES
+    if args.prunes:
+        unknown = set(args.prunes.split(",")) - set(PRUNES)
+        if unknown:
+            raise SystemExit(f"--prunes: unknown {sorted(unknown)}; choose from {list(PRUNES)}")
+        prunes = {k: PRUNES[k] for k in args.prunes.split(",")}
+    sizes = [int(s) for s in args.render_sizes.split(",")] if args.render_sizes else None
+    run_bench(args.out, "quick" if args.quick else "full", configs, sizes, prunes,
+              device=args.device, jobs=args.jobs)
+    return 0
+
+
 def _doctor(args) -> int:
     from usplat_dr import doctor
 
@@ -202,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p = sub.add_parser("params", help="parameter count of a UniqueSplat configuration, per "
                        "part")
-    p.add_argument("--preset", default="paper", choices=["paper", "tiny"])
+    p.add_argument("--preset", default="paper", choices=["paper", "small", "tiny"])
     p.add_argument("--variant", default="all", choices=["all", "baseline", "agnostic", "full"])
     p.set_defaults(func=_params)
 
@@ -262,6 +279,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a tiny budget (CI): a minute or two")
     p.add_argument("--jobs", type=int, default=0, help="Mitsuba worker processes (0: auto)")
     p.set_defaults(func=_demo)
+
+    p = sub.add_parser("bench", help="speed against accuracy: train (or reuse) size presets "
+                       "x variants on the demo's data, measure time per view, memory, "
+                       "Gaussians and accuracy; CSV + chart in OUT/bench")
+    p.add_argument("--out", default="outputs/demo", help="the demo folder (its data and runs "
+                   "are shared)")
+    p.add_argument("--configs", default="", help="comma-separated preset:variant, e.g. "
+                   "tiny:a,tiny:c,small:c (default: tiny a/b/c, small c, paper c)")
+    p.add_argument("--prunes", default="", help="comma-separated pruning settings (default: "
+                   "all, cull, cull+merge1px, cull+merge2px, keep50%%, keep25%%)")
+    p.add_argument("--render-sizes", default="", help="comma-separated render sizes <= the "
+                   "data's (default: half and full)")
+    p.add_argument("--quick", action="store_true", help="the demo's quick budget (CI)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--jobs", type=int, default=0, help="Mitsuba worker processes (0: auto)")
+    p.set_defaults(func=_bench)
 
     from usplat_dr.data.synth.scenes import KINDS
 

@@ -290,6 +290,21 @@ class Trainer:
             parts["lpips"] = lp.item()
         return loss, parts
 
+    #: Parameter groups whose gradient norms (before clipping) go into metrics.csv: the
+    #: primary network, the view-agnostic branch (e_a, H_a), the view-specific hypernetwork
+    #: H_s and the view-specific features (ResNet18, lateral convs, Proj, phi).
+    GRAD_GROUPS = {"primary": "grad_primary", "agnostic": "grad_agnostic",
+                   "specific": "grad_specific", "view_embedding": "grad_view_features"}
+
+    def group_grad_norms(self) -> dict:
+        sums: dict[str, torch.Tensor] = {}
+        for name, p in self.model.named_parameters():
+            key = self.GRAD_GROUPS.get(name.split(".", 1)[0])
+            if key is not None and p.grad is not None:
+                sq = p.grad.detach().double().square().sum()
+                sums[key] = sums[key] + sq if key in sums else sq
+        return {k: v.sqrt().item() for k, v in sums.items()}
+
     def train_step(self, batch: dict) -> dict | None:
         self.ddp.train()
         args = scene_args(batch, self.device)
@@ -301,6 +316,7 @@ class Trainer:
         out = self.ddp(*args, global_step=self.step)
         loss, parts = self.loss(out, target)
         loss.backward()
+        parts.update(self.group_grad_norms())
         norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(),
                                               self.ocfg["gradient_clip"])
         finite = torch.isfinite(loss) & torch.isfinite(norm)
@@ -345,8 +361,8 @@ class Trainer:
                 with open(metrics_path) as f:
                     rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
             f = open(metrics_path, "w", newline="")
-            fields = ["step", "loss", "mse", "lpips", "psnr", "grad_norm", "lr", "skipped",
-                      "steps_per_s", "time_s"]
+            fields = ["step", "loss", "mse", "lpips", "psnr", "grad_norm",
+                      *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s"]
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)

@@ -13,6 +13,7 @@ from usplat_dr.model import CheckpointMismatchError, PrimaryNetwork, UniqueSplat
 from usplat_dr.model.hypernet.resnet import ResNet18
 from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, UniqueSplatCfg
 from usplat_dr.render import RasterSettings, rasterize
+from usplat_dr.render.prune import PruneSettings
 
 
 @pytest.fixture(autouse=True)
@@ -239,3 +240,50 @@ def test_bad_configuration_and_inputs_name_the_argument():
         model.check_targets(1, tk, te[:, :, :3], tn, tf)
     with pytest.raises(ValueError, match="target_near must have shape"):
         model.check_targets(1, tk, te, tn[:, :1], tf)
+
+
+def test_inference_culling_keeps_the_renders():
+    """Eval mode culls per target by default (``inference_prune``): same images as rendering
+    every Gaussian; training renders every Gaussian; pruning refuses to run under autograd."""
+    torch.manual_seed(2)
+    model = UniqueSplat.from_preset("tiny", variant="full")
+    args = scene(n=3)
+    # targets turned away from the contexts' content so that culling has work to do
+    args[6][:, 2, :3, :3] = torch.tensor([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    model.eval()
+    with torch.no_grad():
+        culled = model(*args)
+        everything = model(*args, prune=None)
+    total = len(culled.gaussians)
+    assert (everything.aux["rendered"] == total).all()
+    assert (culled.aux["rendered"] <= total).all()
+    assert culled.aux["rendered"][0, 2] < total // 2
+    # the same Gaussians in the same depth order; only float32 summation order may differ
+    for a, b in ((culled.color, everything.color), (culled.alpha, everything.alpha)):
+        assert (a - b).abs().max() <= 1e-6
+    model.train()
+    out = model(*args)
+    assert (out.aux["rendered"] == total).all()
+    with pytest.raises(ValueError, match="inference only"):
+        model(*args, prune=PruneSettings())
+    with pytest.raises(ValueError, match="prune must be"):
+        model(*args, prune="yes")
+
+
+def test_encoder_and_agnostic_weights_run_once_per_scene_whatever_the_targets():
+    """The issue's 'no per-target recomputation': the backbone, the cost-volume U-Net and
+    H_a run once per forward pass for 1 or 5 targets (counted with forward hooks)."""
+    model = UniqueSplat.from_preset("tiny", variant="full").eval()
+    calls = {"backbone": 0, "agnostic": 0, "depth_unet": 0}
+    model.primary.backbone.register_forward_hook(
+        lambda *a: calls.__setitem__("backbone", calls["backbone"] + 1))
+    model.agnostic.register_forward_hook(
+        lambda *a: calls.__setitem__("agnostic", calls["agnostic"] + 1))
+    model.primary.depth_predictor.refine_unet.register_forward_hook(
+        lambda *a: calls.__setitem__("depth_unet", calls["depth_unet"] + 1))
+    for n in (1, 5):
+        calls.update(backbone=0, agnostic=0, depth_unet=0)
+        model._cached_weights = None  # count H_a too (it is cached across calls)
+        with torch.no_grad():
+            model(*scene(n=n), render=False)
+        assert calls == {"backbone": 1, "agnostic": 1, "depth_unet": 1}, (n, calls)

@@ -31,6 +31,8 @@ from usplat_dr.model.hypernet.hypernetwork import (
 from usplat_dr.model.hypernet.injection import adapter_layout, run_head, vb_layout
 from usplat_dr.model.hypernet.view_branch import ViewSpecificEmbedding
 from usplat_dr.model.types import Gaussians
+from usplat_dr.render.prune import PruneSettings
+from usplat_dr.render.prune import prune as prune_gaussians
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +40,10 @@ VARIANTS = ("baseline", "agnostic", "full")
 HEADS = ("to_gaussians", "to_disparity")
 #: Layers that can take generated weights: the convolutions of the two heads.
 INJECTABLE = tuple(f"{h}.{i}" for h in HEADS for i in (0, 2))
+
+#: Inference default: exact culling (renders unchanged). Merging near-duplicates is left off:
+#: BENCHMARKS.md ("Pruning") measures its PSNR change against the 0.05 dB rule.
+DEFAULT_INFERENCE_PRUNE = PruneSettings()
 
 # Paper sec. "Results reported": the full model has 38.1M parameters.
 PAPER_PARAMETERS = 38.1e6
@@ -111,6 +117,16 @@ PRESETS: dict[str, UniqueSplatCfg] = {
             depth_unet_attn_res=(4,), sh_degree=2),
         embed_dim=128, hyper_hidden=16, delta_rank=4, resnet_stages=2, feature_dim=32,
         proj_samples=16, phi_channels=(32, 32, 64, 64)),
+    # Between the two (about 4x tiny): a 64-channel encoder with 4 transformer layers, three
+    # ResNet stages. For `usplat bench`'s size axis.
+    "small": UniqueSplatCfg(
+        primary=PrimaryNetworkCfg(
+            d_feature=64, num_transformer_layers=4, num_depth_candidates=64,
+            costvolume_unet_feat_dim=64, costvolume_unet_attn_res=(4,),
+            depth_unet_feat_dim=32, depth_unet_channel_mult=(1, 1, 1, 1),
+            depth_unet_attn_res=(8,), sh_degree=3),
+        embed_dim=256, hyper_hidden=32, delta_rank=8, resnet_stages=3, feature_dim=64,
+        proj_samples=32, phi_channels=(64, 64, 128, 128)),
 }
 
 
@@ -153,7 +169,8 @@ class GeneratedConv(nn.Module):
 
 
 class UniqueSplat(nn.Module):
-    """``UniqueSplat(config)`` or ``UniqueSplat.from_preset("paper" | "tiny", variant=...)``.
+    """``UniqueSplat(config)`` or ``UniqueSplat.from_preset("paper" | "small" | "tiny",
+    variant=...)``.
 
     ``forward(images, intrinsics, extrinsics, near, far, target_intrinsics,
     target_extrinsics, target_near, target_far, render=True) -> UniqueSplatOutput``. Cameras
@@ -171,6 +188,9 @@ class UniqueSplat(nn.Module):
                            for t in cfg.target_layers)
         self.specific_specs = tuple(s for s in self.specs if s.name in cfg.specific_layers)
         self._cached_weights = None
+        #: Per-target pruning before rasterisation when not training (``forward``'s
+        #: ``prune="auto"``); ``None`` renders every Gaussian. See ``usplat_dr.render.prune``.
+        self.inference_prune = DEFAULT_INFERENCE_PRUNE
         self.agnostic = self.specific = None
         if cfg.variant == "baseline":
             return
@@ -194,7 +214,7 @@ class UniqueSplat(nn.Module):
     @classmethod
     def from_preset(cls, name: str = "paper", variant: str = "full", **overrides
                     ) -> "UniqueSplat":
-        """A named configuration (``PRESETS``: "paper", "tiny") and variant ("baseline",
+        """A named configuration (``PRESETS``: "paper", "small", "tiny") and variant ("baseline",
         "agnostic", "full"); ``overrides`` replace other ``UniqueSplatCfg`` fields."""
         if name not in PRESETS:
             raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
@@ -275,9 +295,18 @@ class UniqueSplat(nn.Module):
                 far: Float[Tensor, "b v"], target_intrinsics: Float[Tensor, "b n 3 3"],
                 target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
                 target_far: Float[Tensor, "b n"], render: bool = True, global_step: int = 0,
-                background_color: Tensor | None = None, settings=None) -> UniqueSplatOutput:
+                background_color: Tensor | None = None, settings=None, prune="auto"
+                ) -> UniqueSplatOutput:
         """Gaussians per target view, and their renders (``render=True``) through the
-        Dr.Jit rasteriser with MVSplat's SH basis (``settings``: a ``RasterSettings``)."""
+        Dr.Jit rasteriser with MVSplat's SH basis (``settings``: a ``RasterSettings``).
+
+        ``prune``: a ``PruneSettings`` applied per target before rasterising, ``None`` for
+        none, or ``"auto"``: none while training, ``self.inference_prune`` otherwise. The
+        number of Gaussians each target rendered is ``out.aux["rendered"]`` [B, N]."""
+        if isinstance(prune, str) and prune != "auto":
+            raise ValueError(f"prune must be a PruneSettings, None or 'auto', got {prune!r}")
+        if prune == "auto":
+            prune = None if self.training else self.inference_prune
         b, v, _, h, w = images.shape
         n = self.check_targets(b, target_intrinsics, target_extrinsics, target_near, target_far)
         _, _, depth = self.primary.encode(images, intrinsics, extrinsics, near, far,
@@ -329,22 +358,36 @@ class UniqueSplat(nn.Module):
         out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
                                 aux=aux)
         if render:
-            self._render(out, target_intrinsics, target_extrinsics, target_near, target_far,
-                         (h, w), background_color, settings)
+            self.render_targets(out, target_intrinsics, target_extrinsics, target_near, target_far,
+                         (h, w), background_color, settings, prune)
         return out
 
     @staticmethod
-    def _render(out: UniqueSplatOutput, target_intrinsics, target_extrinsics, target_near,
-                target_far, image_shape, background_color, settings) -> None:
+    def render_targets(out: UniqueSplatOutput, target_intrinsics, target_extrinsics,
+                       target_near, target_far, image_shape: tuple[int, int],
+                       background_color=None, settings=None, prune=None) -> None:
+        """Render ``out``'s Gaussians for its targets at ``image_shape`` (any size: the
+        intrinsics are normalised) into ``out.color/alpha/depth``; ``forward(render=True)``
+        calls it at the context images' size. ``prune``: a ``PruneSettings`` or ``None``."""
         from usplat_dr.render import RasterSettings, rasterize
 
         b, n = target_near.shape
         g = out.gaussians
         bg = (torch.zeros(b * n, 3, device=g.means.device) if background_color is None
               else background_color.to(g.means).expand(b * n, 3))
-        r = rasterize(target_extrinsics.flatten(0, 1), target_intrinsics.flatten(0, 1),
-                      target_near.flatten(), target_far.flatten(), image_shape, bg, g.means,
-                      g.covariances, g.harmonics, g.opacities,
+        ext, intr = target_extrinsics.flatten(0, 1), target_intrinsics.flatten(0, 1)
+        near = target_near.flatten()
+        gauss = (g.means, g.covariances, g.harmonics, g.opacities)
+        if prune is not None:
+            if torch.is_grad_enabled() and g.means.requires_grad:
+                raise ValueError("prune works at inference only: run under torch.no_grad() "
+                                 "or pass prune=None")
+            p = prune_gaussians(ext, intr, near, image_shape, *gauss, prune)
+            gauss = (p.means, p.covariances, p.harmonics, p.opacities)
+            out.aux["rendered"] = p.counts.view(b, n)
+        else:
+            out.aux["rendered"] = torch.full((b, n), len(g), device=g.means.device)
+        r = rasterize(ext, intr, near, target_far.flatten(), image_shape, bg, *gauss,
                       settings or RasterSettings(sh_basis="mvsplat"))
         out.color = r.color.unflatten(0, (b, n))
         out.alpha = r.alpha.unflatten(0, (b, n))

@@ -1,0 +1,400 @@
+"""``usplat bench``: speed against accuracy, measured in one run on one machine.
+
+Trains (or reuses) each configuration on the demo's synthetic training set (``usplat demo``'s
+data and budget; the demo's own runs are reused), then measures on the held-out scenes of the
+standard split, interleaving configurations scene by scene so that a busy machine slows all of
+them alike:
+
+- time per rendered novel view: (model time for the scene + its targets' pruning and
+  rendering) / number of targets, i.e. the encoder's share amortised over the scene's targets;
+  wall time and process CPU time, median over scenes (the first scene warms kernels up);
+- peak memory of the model's forward pass (CPU: the rise of the process's peak RSS, reset per
+  measurement through ``/proc/self/clear_refs``; CUDA: ``max_memory_allocated``);
+- parameters, Gaussians rendered per view, and accuracy: PSNR, SSIM, depth AbsRel.
+
+Axes: configurations (size preset x variant), Gaussian budgets (``PRUNES``: everything, exact
+culling, merging near-duplicates, keeping the most important fraction) at the training
+resolution, and render resolutions (default pruning). Writes ``bench.csv``, ``bench.png``
+(accuracy against time per view with the Pareto front; accuracy against Gaussians rendered),
+``bench.md`` (the table) and ``summary.json`` (the smallest configuration within 0.3 dB of the
+best, and which pruning settings cost less than 0.05 dB everywhere).
+"""
+
+import csv
+import json
+import logging
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from usplat_dr.render.prune import PruneSettings
+
+log = logging.getLogger(__name__)
+
+LETTERS = {"baseline": "a", "agnostic": "b", "full": "c"}
+PRUNES: dict[str, PruneSettings | None] = {
+    "all": None,
+    "cull": PruneSettings(),
+    "cull+merge1px": PruneSettings(merge=True),
+    "cull+merge2px": PruneSettings(merge=True, merge_pixels=2.0),
+    "keep50%": PruneSettings(keep_fraction=0.5),
+    "keep25%": PruneSettings(keep_fraction=0.25),
+}
+#: The issue's rules: pruning on by default where it costs < 0.05 dB; the demo's preset is
+#: the smallest configuration within 0.3 dB of the best.
+SAFE_PRUNE_DB = 0.05
+PRESET_WITHIN_DB = 0.3
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    preset: str
+    variant: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.preset} ({LETTERS[self.variant]})"
+
+    def run_dir(self, out: Path) -> Path:
+        # the demo's runs (tiny preset) are train_<variant>: shared
+        name = self.variant if self.preset == "tiny" else f"{self.preset}_{self.variant}"
+        return out / f"train_{name}"
+
+    @classmethod
+    def parse(cls, text: str) -> "BenchConfig":
+        """``preset:variant`` (variant: baseline/agnostic/full or a/b/c)."""
+        from usplat_dr.model.uniquesplat import PRESETS
+
+        preset, _, variant = text.partition(":")
+        variant = {v: k for k, v in LETTERS.items()}.get(variant, variant)
+        if preset not in PRESETS or variant not in LETTERS:
+            raise ValueError(f"--configs: {text!r} is not preset:variant with preset in "
+                             f"{sorted(PRESETS)} and variant in {sorted(LETTERS)} or a/b/c")
+        return cls(preset, variant)
+
+
+#: Variants (a)/(b)/(c) at the tiny size, and the size axis for the method (c): on 2 CPU cores
+#: the paper preset trains at ~1 s a step at 64x64 (small 0.55 s, tiny 0.33 s).
+DEFAULT_CONFIGS = tuple(BenchConfig.parse(c) for c in (
+    "tiny:a", "tiny:b", "tiny:c", "small:c", "paper:c"))
+
+
+class PeakMemory:
+    """Peak memory of a block: CUDA allocator peak, or on Linux the rise of the process's peak
+    RSS (VmHWM, reset by writing 5 to /proc/self/clear_refs). ``None`` where unavailable."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.gib = None
+
+    @staticmethod
+    def _status(key: str) -> int | None:
+        try:
+            for line in Path("/proc/self/status").read_text().splitlines():
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) * 1024
+        except OSError:
+            return None
+        return None
+
+    def __enter__(self):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+            self.base = torch.cuda.memory_allocated(self.device)
+        else:
+            try:
+                Path("/proc/self/clear_refs").write_text("5")
+                self.base = self._status("VmRSS")
+            except OSError:
+                self.base = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            self.gib = (torch.cuda.max_memory_allocated(self.device) - self.base) / 2**30
+        elif self.base is not None:
+            peak = self._status("VmHWM")
+            self.gib = None if peak is None else max(peak - self.base, 0) / 2**30
+        return False
+
+
+def train_configs(out: Path, budget: str, configs, seed: int = 0, jobs: int = 0) -> dict:
+    """Train what is missing (a finished run is reused; an interrupted one resumes)."""
+    from usplat_dr.demo_job import BUDGETS, ensure_data, training_config
+    from usplat_dr.training import train
+
+    ensure_data(out, budget, seed, jobs)
+    b = BUDGETS[budget]
+    runs = {}
+    for c in configs:
+        run = c.run_dir(out)
+        log.info("bench: training %s in %s", c.label, run)
+        train(training_config(out / "data", run, b, c.variant, preset=c.preset), resume=True)
+        runs[c] = run
+    return runs
+
+
+def _load(runs: dict, device) -> dict:
+    from usplat_dr.evaluation import load_model
+
+    return {c: load_model(run / "checkpoints" / "last.ckpt", device)[0]
+            for c, run in runs.items()}
+
+
+def _examples(data: Path, model_size: int, render_sizes) -> list[dict]:
+    """Per scene of the standard split: the batch at the model's size and the targets at
+    every render size."""
+    from torch.utils.data import default_collate
+
+    from usplat_dr.evaluation import synthetic_indices
+    from usplat_dr.training import dataset_from_config
+
+    index = synthetic_indices(data, ["standard"])["standard"]
+    sizes = sorted({model_size, *render_sizes})
+    per_size = {}
+    for s in sizes:
+        ds = dataset_from_config({"name": "synth", "roots": [str(data)], "image_shape": [s, s],
+                                  "evaluation_index": index}, "test")
+        per_size[s] = [default_collate([e]) for e in ds]
+    return [{"batch": per_size[model_size][i],
+             "targets": {s: per_size[s][i]["target"] for s in sizes}}
+            for i in range(len(per_size[model_size]))]
+
+
+@torch.no_grad()
+def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes=None,
+            device="cpu", progress: bool = True) -> list[dict]:
+    """One row per (configuration, pruning, render size); see the module docstring."""
+    from usplat_dr.evaluation import depth_metrics
+    from usplat_dr.metrics import psnr, ssim
+    from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE
+    from usplat_dr.training import scene_args
+
+    device = torch.device(device)
+    render_sizes = sorted(set(render_sizes or (model_size // 2, model_size)))
+    prunes = PRUNES if prunes is None else prunes
+    default_label = next((k for k, v in PRUNES.items() if v == DEFAULT_INFERENCE_PRUNE), "cull")
+    settings = [(name, p, model_size) for name, p in prunes.items()]
+    settings += [(default_label, DEFAULT_INFERENCE_PRUNE, s) for s in render_sizes
+                 if s != model_size]
+    examples = _examples(data, model_size, render_sizes)
+    acc = {(c, name, s): {"wall": [], "cpu": [], "psnr": [], "ssim": [], "abs_rel": [],
+                          "gaussians": [], "kept": [], "mem": []}
+           for c in models for name, _, s in settings}
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(examples) * len(models), desc="bench", unit="scene",
+                   dynamic_ncols=True)
+    for i, ex in enumerate(examples):
+        args = scene_args(ex["batch"], device)
+        n = args[5].shape[1]
+        for c, model in models.items():
+            model.eval()
+            with PeakMemory(device) as mem:
+                w0, c0 = time.perf_counter(), time.process_time()
+                out = model(*args, render=False)
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                model_wall, model_cpu = time.perf_counter() - w0, time.process_time() - c0
+            total = len(out.gaussians)
+            for name, prune, size in settings:
+                tgt = ex["targets"][size]
+                w0, c0 = time.perf_counter(), time.process_time()
+                model.render_targets(out, *(tgt[k].to(device) for k in (
+                    "intrinsics", "extrinsics", "near", "far")), (size, size), prune=prune)
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                a = acc[(c, name, size)]
+                a["wall"].append((model_wall + time.perf_counter() - w0) / n)
+                a["cpu"].append((model_cpu + time.process_time() - c0) / n)
+                a["mem"].append(mem.gib)
+                gt = tgt["image"][0].to(device)
+                a["psnr"].append(psnr(out.color[0], gt).mean().item())
+                a["ssim"].append(ssim(out.color[0], gt).mean().item())
+                dm = [depth_metrics(out.depth[0, j].cpu(), out.alpha[0, j].cpu(),
+                                    tgt["depth"][0, j])["abs_rel"] for j in range(n)]
+                a["abs_rel"].append(float(np.nanmean(dm)))
+                rendered = out.aux["rendered"].float().mean().item()
+                a["gaussians"].append(rendered)
+                a["kept"].append(rendered / total)
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    rows = []
+    for (c, name, size), a in acc.items():
+        steady = slice(1, None) if len(examples) > 1 else slice(None)
+        mems = [m for m in a["mem"] if m is not None]
+        rows.append({
+            "config": c.label, "preset": c.preset, "variant": c.variant,
+            "parameters": sum(p.numel() for p in models[c].parameters()),
+            "prune": name, "render_size": size,
+            "time_per_view_ms": 1000 * statistics.median(a["wall"][steady]),
+            "cpu_time_per_view_ms": 1000 * statistics.median(a["cpu"][steady]),
+            "peak_memory_mib": 1024 * max(mems) if mems else None,
+            "gaussians_per_view": statistics.mean(a["gaussians"]),
+            "kept_fraction": statistics.mean(a["kept"]),
+            "psnr": statistics.mean(a["psnr"]), "ssim": statistics.mean(a["ssim"]),
+            "abs_rel": float(np.nanmean(a["abs_rel"])), "scenes": len(examples)})
+    for r in rows:  # PSNR change against rendering everything, same model and size
+        base = next((q for q in rows if q["config"] == r["config"] and q["prune"] == "all"
+                     and q["render_size"] == r["render_size"]), None)
+        r["psnr_change_db"] = None if base is None else r["psnr"] - base["psnr"]
+    return rows
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats (lower x and higher y, at least one
+    strictly), sorted by x.
+
+    >>> pareto([(1.0, 1.0), (2.0, 3.0), (3.0, 2.0), (4.0, 4.0)])
+    [0, 1, 3]
+    """
+    front = [i for i, (x, y) in enumerate(points)
+             if not any(x2 <= x and y2 >= y and (x2 < x or y2 > y) for x2, y2 in points)]
+    return sorted(front, key=lambda i: points[i][0])
+
+
+def choose(rows: list[dict], model_size: int) -> dict:
+    """The issue's two decisions from the measured rows."""
+    base = [r for r in rows if r["render_size"] == model_size and r["prune"] == "all"]
+    best = max(base, key=lambda r: r["psnr"])
+    within = [r for r in base if r["psnr"] >= best["psnr"] - PRESET_WITHIN_DB]
+    smallest = min(within, key=lambda r: r["parameters"])
+    safe = {}
+    for name in {r["prune"] for r in rows if r["prune"] != "all"}:
+        changes = [r["psnr_change_db"] for r in rows
+                   if r["prune"] == name and r["render_size"] == model_size]
+        safe[name] = {"worst_psnr_change_db": min(changes),
+                      "kept_fraction": statistics.mean(
+                          r["kept_fraction"] for r in rows
+                          if r["prune"] == name and r["render_size"] == model_size),
+                      "safe": min(changes) > -SAFE_PRUNE_DB}
+    return {"best": best["config"], "best_psnr": best["psnr"],
+            "smallest_within_0.3dB": smallest["config"], "its_psnr": smallest["psnr"],
+            "its_parameters": smallest["parameters"], "pruning": safe}
+
+
+def chart(rows: list[dict], model_size: int, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from usplat_dr.io import atomic_open
+
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    colours = {c: plt.cm.tab10(i % 10) for i, c in enumerate(configs)}
+    markers = {"all": "o", "cull": "s", "cull+merge1px": "D", "cull+merge2px": "d",
+               "keep50%": "v", "keep25%": "^"}
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4.6))
+    main = [r for r in rows if r["render_size"] == model_size]
+    for r in main:
+        kw = dict(color=colours[r["config"]], marker=markers.get(r["prune"], "o"), s=36,
+                  edgecolors="k", linewidths=0.4, zorder=3)
+        ax0.scatter(r["time_per_view_ms"], r["psnr"], **kw)
+        ax1.scatter(r["gaussians_per_view"], r["psnr"], **kw)
+    for r in rows:
+        if r["render_size"] != model_size:
+            ax0.scatter(r["time_per_view_ms"], r["psnr"], color=colours[r["config"]],
+                        marker="o", s=36, facecolors="none", zorder=2)
+            ax0.annotate(f"{r['render_size']}px", (r["time_per_view_ms"], r["psnr"]),
+                         fontsize=7, xytext=(3, -8), textcoords="offset points")
+    front = pareto([(r["time_per_view_ms"], r["psnr"]) for r in main])
+    ax0.plot([main[i]["time_per_view_ms"] for i in front], [main[i]["psnr"] for i in front],
+             "k--", linewidth=1, label="Pareto front", zorder=1)
+    for i in front:
+        ax0.annotate(f"{main[i]['config']}, {main[i]['prune']}",
+                     (main[i]["time_per_view_ms"], main[i]["psnr"]), fontsize=7,
+                     xytext=(4, 4), textcoords="offset points")
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=colours[c], marker="o", linestyle="", label=c)
+               for c in configs]
+    handles += [Line2D([], [], color="grey", marker=m, linestyle="", label=p)
+                for p, m in markers.items() if any(r["prune"] == p for r in main)]
+    handles += [Line2D([], [], color="k", linestyle="--", label="Pareto front"),
+                Line2D([], [], color="grey", marker="o", markerfacecolor="none",
+                       linestyle="", label="other render size")]
+    ax0.set(xscale="log", xlabel="time per novel view (ms, log)",
+            ylabel="PSNR (dB, held-out, standard split)",
+            title=f"accuracy against time ({model_size}x{model_size})")
+    ax1.set(xscale="log", xlabel="Gaussians rendered per view (log)", ylabel="PSNR (dB)",
+            title="accuracy against Gaussians")
+    for ax in (ax0, ax1):
+        ax.grid(alpha=0.3, which="both")
+    ax1.legend(handles=handles, fontsize=7, loc="best")
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+    return path
+
+
+FIELDS = ["config", "preset", "variant", "parameters", "prune", "render_size",
+          "time_per_view_ms", "cpu_time_per_view_ms", "peak_memory_mib", "gaussians_per_view",
+          "kept_fraction", "psnr", "psnr_change_db", "ssim", "abs_rel", "scenes"]
+
+
+def table(rows: list[dict]) -> str:
+    def fmt(v, spec):
+        return "-" if v is None else format(v, spec)
+
+    lines = ["| config | params | pruning | size | ms/view | CPU ms/view | peak MiB | "
+             "Gaussians/view | kept | PSNR | dPSNR | SSIM | AbsRel |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['config']} | {r['parameters'] / 1e6:.2f}M | {r['prune']} | "
+            f"{r['render_size']} | {r['time_per_view_ms']:.1f} | "
+            f"{r['cpu_time_per_view_ms']:.1f} | {fmt(r['peak_memory_mib'], '.0f')} | "
+            f"{r['gaussians_per_view']:.0f} | {r['kept_fraction']:.2f} | {r['psnr']:.2f} | "
+            f"{fmt(r['psnr_change_db'], '+.3f')} | {r['ssim']:.3f} | {r['abs_rel']:.3f} |")
+    return "\n".join(lines)
+
+
+def write_results(rows: list[dict], model_size: int, out: Path) -> dict:
+    from usplat_dr.io import atomic_open, write_json
+
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_open(out / "bench.csv", "w") as f:
+        w = csv.DictWriter(f, fieldnames=FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    chart(rows, model_size, out / "bench.png")
+    decision = choose(rows, model_size)
+    write_json(out / "summary.json", decision)
+    with atomic_open(out / "bench.md", "w") as f:
+        f.write(table(rows) + "\n")
+    return decision
+
+
+def run_bench(out: str | Path = "outputs/demo", budget: str = "full", configs=DEFAULT_CONFIGS,
+              render_sizes=None, prunes=None, device: str = "cpu", seed: int = 0,
+              jobs: int = 0) -> dict:
+    """Train what is missing, measure, write ``out/bench/``; returns the decisions."""
+    from usplat_dr.demo_job import BUDGETS
+
+    if budget not in BUDGETS:
+        raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {budget!r}")
+    out = Path(out)
+    size = BUDGETS[budget].size
+    if render_sizes and max(render_sizes) > size:
+        raise ValueError(f"render sizes {render_sizes} exceed the data's {size}x{size} (the "
+                         f"ground truth would be upsampled); use sizes <= {size}")
+    runs = train_configs(out, budget, configs, seed, jobs)
+    models = _load(runs, device)
+    rows = measure(models, out / "data", size, render_sizes, prunes, device)
+    decision = write_results(rows, size, out / "bench")
+    print(table(rows))
+    print(json.dumps(decision, indent=1))
+    print(f"wrote {out / 'bench'} (bench.csv, bench.png, bench.md, summary.json)")
+    return decision
