@@ -179,13 +179,20 @@ def prune(extrinsics: Float[Tensor, "b 4 4"], intrinsics: Float[Tensor, "b 3 3"]
 
 def _merge(sel: dict, batch_idx: Tensor, fp: dict, s: PruneSettings) -> tuple[dict, Tensor]:
     colour = (SH_C0 * sel["sh"][..., 0] + 0.5).clamp(0, 1)
-    key = torch.stack([
-        batch_idx,
-        torch.floor(fp["u"] / s.merge_pixels).long(),
-        torch.floor(fp["v"] / s.merge_pixels).long(),
-        torch.floor(torch.log(fp["z"]) / s.merge_depth).long(),
-        *torch.floor(colour / s.merge_color).long().unbind(-1)], -1)
-    _, group = torch.unique(key, dim=0, return_inverse=True)
+    # one int64 key per Gaussian (a 1D unique is a fast sort): batch 10 bits, cell x and y 12
+    # bits each, log-depth bin 14, colour bins 4 x 3. Cells are clamped to the ranges, which
+    # only ever merges Gaussians far outside the image (culled first by default).
+    if int(batch_idx.max()) >= 1 << 10:
+        raise ValueError("prune(merge=True) handles at most 1024 images per call")
+    fields = [(batch_idx, 10),
+              (torch.floor(fp["u"] / s.merge_pixels).long() + 1024, 12),
+              (torch.floor(fp["v"] / s.merge_pixels).long() + 1024, 12),
+              (torch.floor(torch.log(fp["z"]) / s.merge_depth).long() + (1 << 13), 14),
+              *((torch.floor(ch / s.merge_color).long(), 4) for ch in colour.unbind(-1))]
+    key = torch.zeros_like(batch_idx)
+    for value, bits in fields:
+        key = (key << bits) | value.clamp(0, (1 << bits) - 1)
+    _, group = torch.unique(key, return_inverse=True)
     n = int(group.max()) + 1
 
     def gsum(x: Tensor) -> Tensor:
