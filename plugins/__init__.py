@@ -9,9 +9,7 @@ a model's prediction for one target) and ``ellipsoids_to_gaussians`` (back to to
 The rasteriser itself (``usplat_dr.render``) never imports Mitsuba.
 """
 
-import usplat_dr  # noqa: F401  (points Dr.Jit at a suitable libLLVM before it loads)
 import mitsuba as mi  # noqa: I001
-
 from usplat_dr.plugins.convert import (
     ellipsoids_to_gaussians,
     gaussians_to_ellipsoids,
@@ -19,6 +17,8 @@ from usplat_dr.plugins.convert import (
     sensor_camera,
 )
 from usplat_dr.plugins.usplat_splat import integrator_class, register
+
+import usplat_dr  # noqa: F401  (points Dr.Jit at a suitable libLLVM before it loads)
 
 __all__ = ["ellipsoids_to_gaussians", "gaussians_to_ellipsoids", "integrator_class",
            "model_gaussians_to_ellipsoids", "register", "sensor_camera"]

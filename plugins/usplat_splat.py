@@ -6,8 +6,8 @@ perspective sensor.
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-
 from usplat_dr.plugins.convert import ellipsoids_as_gaussians, sensor_camera
+
 from usplat_dr.render.settings import RasterSettings
 
 DOC = r"""

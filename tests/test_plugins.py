@@ -10,8 +10,8 @@ import torch
 
 mi = pytest.importorskip("mitsuba")
 import drjit as dr  # noqa: E402
-
 import usplat_dr.plugins as plugins  # noqa: E402
+
 from usplat_dr.render import RasterSettings, rasterize  # noqa: E402
 
 
@@ -86,7 +86,8 @@ def torch_inputs(g, width=48, height=40, fov=45.0, requires_grad=False):
         1)
     assert np.allclose(rot.detach().numpy(), r, atol=1e-6)  # the two formulas agree
     cov = rot @ torch.diag_embed(t["scales"] ** 2) @ rot.transpose(-1, -2)
-    args = (torch.tensor(c2w, dtype=torch.float32)[None], torch.tensor(k, dtype=torch.float32)[None],
+    args = (torch.tensor(c2w, dtype=torch.float32)[None],
+            torch.tensor(k, dtype=torch.float32)[None],
             torch.tensor([0.5]), torch.tensor([50.0]), (height, width), torch.zeros(1, 3),
             t["means"][None], cov[None], t["sh"][None], t["opacities"][None])
     return args, t

@@ -31,8 +31,8 @@ def main() -> None:
 
     mi.set_variant(args.variant)
     import torch
-
     import usplat_dr.plugins as plugins
+
     from usplat_dr.render import rasterize
     from usplat_dr.render.pipeline import rasterize_drjit
 

@@ -42,6 +42,7 @@ def run(kind: str = "indoor", seed: int = 3, size: int = 48, frames: int = 12,
 
     mi.set_variant(variant)
     import usplat_dr.plugins as plugins
+
     from usplat_dr.data.synth import render_spec, scene_record
     from usplat_dr.data.synth.scenes import make_spec
     from usplat_dr.fit import init_from_depth, split_views, views_from_record

@@ -85,7 +85,9 @@ DEFAULT_CONFIGS = tuple(BenchConfig.parse(c) for c in (
 
 class PeakMemory:
     """Peak memory of a block: CUDA allocator peak, or on Linux the rise of the process's peak
-    RSS (VmHWM, reset by writing 5 to /proc/self/clear_refs). ``None`` where unavailable."""
+    RSS (VmHWM, reset by writing 5 to /proc/self/clear_refs) after glibc's ``malloc_trim``
+    has returned freed heap pages (else freed memory is reused without raising RSS and every
+    block after the first reads ~0). ``None`` where unavailable."""
 
     def __init__(self, device: torch.device):
         self.device = device
@@ -107,6 +109,12 @@ class PeakMemory:
             torch.cuda.reset_peak_memory_stats(self.device)
             self.base = torch.cuda.memory_allocated(self.device)
         else:
+            try:
+                import ctypes
+
+                ctypes.CDLL("libc.so.6").malloc_trim(0)
+            except (OSError, AttributeError):
+                pass
             try:
                 Path("/proc/self/clear_refs").write_text("5")
                 self.base = self._status("VmRSS")
