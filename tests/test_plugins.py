@@ -4,15 +4,14 @@ independent float64 constructions (look-at camera, covariance from scale and qua
 
 import math
 
+import drjit as dr  # (conftest imported usplat_dr first: libLLVM chosen)
+import mitsuba as mi
 import numpy as np
 import pytest
 import torch
+import usplat_dr.plugins as plugins
 
-mi = pytest.importorskip("mitsuba")
-import drjit as dr  # noqa: E402
-import usplat_dr.plugins as plugins  # noqa: E402
-
-from usplat_dr.render import RasterSettings, rasterize  # noqa: E402
+from usplat_dr.render import RasterSettings, rasterize
 
 
 @pytest.fixture(autouse=True)

@@ -26,12 +26,12 @@ def main() -> None:
     p.add_argument("--variant", default="llvm_ad_rgb")
     args = p.parse_args()
 
+    import usplat_dr.plugins as plugins  # noqa: I001 (first: finds libLLVM before drjit loads)
     import drjit as dr
     import mitsuba as mi
+    import torch
 
     mi.set_variant(args.variant)
-    import torch
-    import usplat_dr.plugins as plugins
 
     from usplat_dr.render import rasterize
     from usplat_dr.render.pipeline import rasterize_drjit

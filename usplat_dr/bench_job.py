@@ -148,7 +148,8 @@ def train_configs(out: Path, budget: str, configs, seed: int = 0, jobs: int = 0)
     return runs
 
 
-def _load(runs: dict, device) -> dict:
+def load_models(runs: dict, device) -> dict:
+    """``{config: model}`` from ``{config: run folder}`` (each run's ``last.ckpt``)."""
     from usplat_dr.evaluation import load_model
 
     return {c: load_model(run / "checkpoints" / "last.ckpt", device)[0]
@@ -399,7 +400,7 @@ def run_bench(out: str | Path = "outputs/demo", budget: str = "full", configs=DE
         raise ValueError(f"render sizes {render_sizes} exceed the data's {size}x{size} (the "
                          f"ground truth would be upsampled); use sizes <= {size}")
     runs = train_configs(out, budget, configs, seed, jobs)
-    models = _load(runs, device)
+    models = load_models(runs, device)
     rows = measure(models, out / "data", size, render_sizes, prunes, device)
     decision = write_results(rows, size, out / "bench")
     print(table(rows))

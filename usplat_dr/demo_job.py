@@ -122,12 +122,11 @@ def stability(run: Path) -> dict:
     median and maximum gradient norm (before clipping) and the last quarter's median against
     the first quarter's (bounded: the ratio stays near or below 1), and the skipped steps."""
     rows = _read_metrics(run)
-    out = {"steps": int(rows[-1]["step"]), "skipped": int(rows[-1]["skipped"]),
-           "loss_first_quarter": None, "loss_last_quarter": None, "parts": {}}
     q = max(1, len(rows) // 4)
     loss = [float(r["loss"]) for r in rows]
-    out["loss_first_quarter"] = float(np.median(loss[:q]))
-    out["loss_last_quarter"] = float(np.median(loss[-q:]))
+    out = {"steps": int(rows[-1]["step"]), "skipped": int(rows[-1]["skipped"]),
+           "loss_first_quarter": float(np.median(loss[:q])),
+           "loss_last_quarter": float(np.median(loss[-q:])), "parts": {}}
     for key in ("grad_norm", *GRAD_LABELS):
         values = [float(r[key]) for r in rows if r.get(key)]
         if values:
@@ -200,9 +199,9 @@ def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int =
     worst = {v: worst_cases(out, b, v) for v in runs}
     timings["worst-case renders"] = time.perf_counter() - t
     t = time.perf_counter()
-    from usplat_dr.bench_job import BenchConfig, _load, measure, write_results
+    from usplat_dr.bench_job import BenchConfig, load_models, measure, write_results
 
-    models = _load({BenchConfig(PRESET, v): r for v, r in runs.items()}, "cpu")
+    models = load_models({BenchConfig(PRESET, v): r for v, r in runs.items()}, "cpu")
     bench = write_results(measure(models, data, b.size), b.size, out / "bench_demo")
     timings["speed/accuracy bench"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start

@@ -361,8 +361,8 @@ class UniqueSplat(nn.Module):
         out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
                                 aux=aux)
         if render:
-            self.render_targets(out, target_intrinsics, target_extrinsics, target_near, target_far,
-                         (h, w), background_color, settings, prune)
+            self.render_targets(out, target_intrinsics, target_extrinsics, target_near,
+                                target_far, (h, w), background_color, settings, prune)
         return out
 
     @staticmethod
