@@ -89,14 +89,13 @@ def ellipsoids_as_gaussians(shapes: list) -> dict:
         idx = dr.arange(UInt32, n)
         f = [dr.gather(Float, p["data"], idx * 10 + k) for k in range(10)]
         c, s, q = f[0:3], f[3:6], f[6:10]
-        # unit quaternion (x, y, z, w) -> rotation (3DGS normalises too)
-        inv = dr.rsqrt(dr.maximum(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2, 1e-20))
-        x, y, z, w = (qi * inv for qi in q)
-        r = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-             [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+        # rotation of the normalised quaternion (x, y, z, w: Dr.Jit's order, as volprim reads
+        # it; 3DGS normalises too), covariance R diag(s^2) R^T
+        quat = mi.Quaternion4f(*q)
+        quat *= dr.rsqrt(dr.maximum(dr.squared_norm(quat), 1e-20))  # a zero one: no NaN
+        r = dr.quat_to_matrix(mi.Matrix3f, quat)
         s2 = [si * si for si in s]
-        cov = [sum(r[i][k] * s2[k] * r[j][k] for k in range(3)) for i in range(3)
+        cov = [sum(r[i, k] * s2[k] * r[j, k] for k in range(3)) for i in range(3)
                for j in range(3)]
         sh = [dr.gather(Float, p["sh_coeffs"], idx * (3 * p["sh_size"]) + i * 3 + ch)
               if i < p["sh_size"] else dr.zeros(Float, n)
@@ -107,11 +106,10 @@ def ellipsoids_as_gaussians(shapes: list) -> dict:
         ops.append(p["opacities"])
     if not means:
         return {"count": 0, "sh_size": d}
-    cat = _concat
-    return {"means": _interleave([cat([m[k] for m in means]) for k in range(3)]),
-            "covariances": _interleave([cat([c[k] for c in covs]) for k in range(9)]),
-            "sh": _interleave([cat([s[k] for s in shs]) for k in range(3 * d)]),
-            "opacities": cat(ops), "count": sum(p["count"] for p in parts), "sh_size": d}
+    return {"means": _interleave([_concat([m[k] for m in means]) for k in range(3)]),
+            "covariances": _interleave([_concat([c[k] for c in covs]) for k in range(9)]),
+            "sh": _interleave([_concat([s[k] for s in shs]) for k in range(3 * d)]),
+            "opacities": _concat(ops), "count": sum(p["count"] for p in parts), "sh_size": d}
 
 
 def _concat(arrays: list):
