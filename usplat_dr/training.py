@@ -45,7 +45,7 @@ def model_from_config(mcfg: dict):
     from usplat_dr.model import UniqueSplat
     from usplat_dr.model.uniquesplat import PRESETS, UniqueSplatCfg
 
-    check_keys(mcfg, {"preset", "variant", "overrides", "init_mvsplat"}, "model")
+    check_keys(mcfg, {"preset", "variant", "overrides", "init_mvsplat", "init_from"}, "model")
     preset = mcfg.get("preset", "tiny")
     if preset not in PRESETS:
         raise ConfigError(f"model.preset must be one of {sorted(PRESETS)}, got {preset!r}")
@@ -55,9 +55,35 @@ def model_from_config(mcfg: dict):
         base["primary"] = {**base["primary"], **over.pop("primary")}
     cfg = UniqueSplatCfg.from_dict({**base, **over, "variant": mcfg.get("variant", "full")})
     model = UniqueSplat(cfg)
+    if mcfg.get("init_mvsplat") and mcfg.get("init_from"):
+        raise ConfigError("model.init_mvsplat and model.init_from both set: choose one")
     if mcfg.get("init_mvsplat"):
         model.load_mvsplat(mcfg["init_mvsplat"])
+    if mcfg.get("init_from"):
+        init_from_checkpoint(model, mcfg["init_from"])
     return model
+
+
+def init_from_checkpoint(model, path: str | os.PathLike) -> None:
+    """The paper's protocol: the primary network (encoder and predictor) from a trained
+    usplat checkpoint (``usplat train``'s or a shipped one, any variant); for (b) and (c) its
+    target layers' weights become W, and the hypernetworks' zero-initialised outputs make
+    the model start exactly where that checkpoint is."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"model.init_from: checkpoint {str(path)!r} does not exist")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if "model_config" not in state:
+        raise ConfigError(f"model.init_from: {path} is not a usplat checkpoint (no "
+                          f"'model_config'); an MVSplat checkpoint goes in model.init_mvsplat")
+    sd = state["model"]
+    if state["model_config"]["variant"] != "baseline":
+        raise ConfigError(f"model.init_from: {path} holds variant "
+                          f"{state['model_config']['variant']!r}; start from a baseline (a) "
+                          f"checkpoint (its primary network is complete)")
+    primary = {k.removeprefix("primary."): v.float() for k, v in sd.items()
+               if k.startswith("primary.")}
+    model.load_mvsplat(primary)
 
 
 def dataset_from_config(dcfg: dict, stage: str, step_tracker=None, rank: int | None = None,
@@ -187,6 +213,33 @@ def scene_args(batch: dict, device: torch.device) -> tuple:
         t["intrinsics"], t["extrinsics"], t["near"], t["far"]))
 
 
+def depth_loss(aux: dict, depth: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+    """Depth supervision of the context views: mean |log d_pred - log d_true| over the pixels
+    with a finite positive ground-truth depth, on the refined and on the coarse depth
+    (``aux``'s ``context_depths`` / ``context_coarse_depths``).
+
+    ``depth`` [B, V, H, W] is camera-space z (synthetic sets carry it, +inf on a miss), while
+    MVSplat's depth is the distance along the pixel's unit ray (the adapter places a Gaussian
+    at origin + d * direction / |direction|), so z is converted: d = z |K^-1 (x, y, 1)| at
+    the pixel centre (up to 15% apart at the corners of a 60-degree view). The log error is
+    scale-free (for small errors it is AbsRel), so near and far scenes weigh alike; the coarse
+    term keeps a gradient where the refined depth is clamped to [near, far] (the clamp
+    passes none)."""
+    from usplat_dr.geometry.cameras import pixel_centres
+
+    b, v, h, w = depth.shape
+    xy1 = torch.cat([pixel_centres(h, w, depth.device), depth.new_ones(h * w, 1)], -1)
+    ray = torch.einsum("bvij,rj->bvri", intrinsics.inverse(), xy1).norm(dim=-1)
+    valid = torch.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        return depth.new_zeros(())
+    log_true = (depth * ray.view(b, v, h, w))[valid].log()
+    total = depth.new_zeros(())
+    for key in ("context_depths", "context_coarse_depths"):
+        total = total + (aux[key][valid].log() - log_true).abs().mean()
+    return total
+
+
 # ---- the trainer -------------------------------------------------------------------------------
 
 class Trainer:
@@ -202,9 +255,10 @@ class Trainer:
                      **(cfg.get("optimizer") or {})}
         check_keys(self.ocfg, {"lr", "warm_up_fraction", "gradient_clip"}, "optimizer")
         self.lcfg = {"mse": 1.0, "lpips": 0.05, "lpips_after_step": 150_000,
-                     "lpips_vgg": None, "lpips_lin": None, **(cfg.get("loss") or {})}
-        check_keys(self.lcfg, {"mse", "lpips", "lpips_after_step", "lpips_vgg", "lpips_lin"},
-                   "loss")
+                     "lpips_vgg": None, "lpips_lin": None, "depth": 0.0,
+                     "depth_until_step": None, **(cfg.get("loss") or {})}
+        check_keys(self.lcfg, {"mse", "lpips", "lpips_after_step", "lpips_vgg", "lpips_lin",
+                               "depth", "depth_until_step"}, "loss")
         self.out = Path(cfg.get("output_dir", "outputs/train"))
         self.rank, self.world, self.device = setup_distributed(cfg.get("device", "cpu"),
                                                                cfg.get("threads"))
@@ -240,6 +294,12 @@ class Trainer:
             self.optimizer, self.ocfg["lr"], total_steps=self.tcfg["steps"] + 10,
             pct_start=self.ocfg["warm_up_fraction"], cycle_momentum=False,
             anneal_strategy="cos")
+        # What this run ran on (data content hash, library versions, CPU, threads): saved
+        # in every checkpoint, so runs that differ can be told apart.
+        from usplat_dr.provenance import provenance
+
+        self.provenance = (provenance((cfg.get("dataset") or {}).get("roots") or ())
+                           if self.rank == 0 else {})
         self.step = 0
         self.skipped = 0
         self.consecutive_bad = 0
@@ -257,7 +317,8 @@ class Trainer:
         state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
                  "scheduler": self.scheduler.state_dict(), "step": self.step,
                  "rng": rng_state(), "data": self.batches.state(), "skipped": self.skipped,
-                 "config": self.cfg, "model_config": self.model.cfg.to_dict()}
+                 "config": self.cfg, "model_config": self.model.cfg.to_dict(),
+                 "provenance": self.provenance}
         return torch_save(state, self.checkpoint_path)
 
     def resume(self, path: str | os.PathLike | None = None) -> bool:
@@ -279,11 +340,21 @@ class Trainer:
         return True
 
     # -- one step --
-    def loss(self, out, target: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    def loss(self, out, batch: dict) -> tuple[torch.Tensor, dict]:
+        """MSE on the targets, + LPIPS after ``loss.lpips_after_step``, + the depth term
+        (``loss.depth`` > 0, until ``loss.depth_until_step``) where the data has depth."""
         pred = out.color
+        target = batch["target"]["image"].to(self.device)
         mse = (pred - target).square().mean()
         loss = self.lcfg["mse"] * mse
         parts = {"mse": mse.item()}
+        until = self.lcfg["depth_until_step"]
+        if (self.lcfg["depth"] > 0 and (until is None or self.step < until)
+                and "depth" in batch["context"]):
+            d = depth_loss(out.aux, batch["context"]["depth"].to(self.device),
+                           batch["context"]["intrinsics"].to(self.device))
+            loss = loss + self.lcfg["depth"] * d
+            parts["depth"] = d.item()
         if self.lpips is not None and self.step >= self.lcfg["lpips_after_step"]:
             lp = self.lpips(pred.flatten(0, 1), target.flatten(0, 1)).mean()
             loss = loss + self.lcfg["lpips"] * lp
@@ -314,7 +385,7 @@ class Trainer:
         # is skipped (a NaN input would otherwise poison them for good)
         buffers = {n: b.detach().clone() for n, b in self.model.named_buffers()}
         out = self.ddp(*args, global_step=self.step)
-        loss, parts = self.loss(out, target)
+        loss, parts = self.loss(out, batch)
         loss.backward()
         parts.update(self.group_grad_norms())
         norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(),
@@ -361,7 +432,7 @@ class Trainer:
                 with open(metrics_path) as f:
                     rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
             f = open(metrics_path, "w", newline="")
-            fields = ["step", "loss", "mse", "lpips", "psnr", "grad_norm",
+            fields = ["step", "loss", "mse", "lpips", "depth", "psnr", "grad_norm",
                       *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s"]
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()

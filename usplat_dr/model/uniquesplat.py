@@ -139,7 +139,8 @@ class UniqueSplatOutput:
     target view (for the baseline and agnostic variants the same set repeated).
     ``color`` [B, N, 3, H, W], ``alpha`` and ``depth`` [B, N, H, W] when rendered.
     ``aux``: ``embedding`` e_s [B, N, D] and Proj's ``correlation`` / ``weights`` (full
-    variant)."""
+    variant); ``context_depths`` and ``context_coarse_depths`` [B, V, H, W] (the context
+    views' predicted depth after and before refinement)."""
 
     gaussians: Gaussians
     num_targets: int
@@ -358,6 +359,13 @@ class UniqueSplat(nn.Module):
                 f.name: getattr(gaussians, f.name)[:, None].expand(
                     b, n, *getattr(gaussians, f.name).shape[1:]).flatten(0, 1)
                 for f in fields(Gaussians)})
+        # The context views' depth maps [B, V, H, W] (the first target's where they differ
+        # per target; MVSplat's depth: the distance along the pixel's unit ray, not z): what
+        # a depth loss supervises. ``context_coarse_depths`` is the
+        # cost volume's estimate before refinement; unlike the final depths it is never
+        # clamped to [near, far], so it keeps a gradient where the final depth saturates.
+        aux["context_depths"] = depths.view(b, nb, v, h, w, -1)[:, 0, ..., 0]
+        aux["context_coarse_depths"] = 1.0 / depth.disp_full.view(v, b, h, w).transpose(0, 1)
         out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
                                 aux=aux)
         if render:
