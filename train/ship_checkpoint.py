@@ -1,0 +1,86 @@
+"""Ship a trained model: export its weights (float16, no optimiser state) under checkpoints/,
+evaluate the shipped file against the float32 original on a held-out synthetic set, and
+record it in checkpoints/manifest.json.
+
+    python train/ship_checkpoint.py --checkpoint outputs/tiny_depth/checkpoints/last.ckpt \
+        --name tiny_baseline --eval-data outputs/big/test2000 \
+        --train-command "usplat train --config ..." --data "480 scenes, seed 100"
+"""
+
+import argparse
+import hashlib
+import json
+import logging
+import sys
+import tempfile
+from pathlib import Path
+
+import usplat_dr  # noqa: F401  (libLLVM before drjit)
+from usplat_dr.evaluation import evaluate, load_model, synthetic_indices
+from usplat_dr.io import write_json
+from usplat_dr.training import export_weights
+
+ROOT = Path(__file__).parents[1] / "checkpoints"
+#: Float16 storage is accepted when it moves the held-out PSNR by at most this much.
+HALF_TOLERANCE_DB = 0.01
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def held_out(checkpoint: Path, data: str, size: int, splits: list[str]) -> dict:
+    model, _ = load_model(checkpoint)
+    dataset = {"name": "synth", "roots": [data], "image_shape": [size, size]}
+    with tempfile.TemporaryDirectory() as out:
+        summary = evaluate(model, dataset, synthetic_indices(data, splits), out,
+                           images_per_split=0, progress=False)
+    return summary["splits"]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", required=True, type=Path, help="a usplat training checkpoint")
+    p.add_argument("--name", required=True, help="manifest name and file stem")
+    p.add_argument("--eval-data", required=True, help="held-out synthetic set (usplat synth)")
+    p.add_argument("--train-command", required=True, help="the command that trained it")
+    p.add_argument("--data", required=True, help="what it was trained on, in words")
+    p.add_argument("--splits", nargs="+", default=None, help="splits to evaluate (all)")
+    p.add_argument("--size", type=int, default=64, help="evaluation image size")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+
+    reference = held_out(args.checkpoint, args.eval_data, args.size, ["standard"])
+    file = ROOT / f"{args.name}.pt"
+    import torch
+
+    state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    metadata = {"recipe": state["config"].get("loss", {}), "eval_data": args.eval_data}
+    export_weights(args.checkpoint, file, half=True, metadata=metadata)
+    shipped = held_out(file, args.eval_data, args.size, args.splits)
+    diff = abs(shipped["standard"]["psnr"] - reference["standard"]["psnr"])
+    half = diff <= HALF_TOLERANCE_DB
+    if not half:
+        export_weights(args.checkpoint, file, half=False, metadata=metadata)
+        shipped = held_out(file, args.eval_data, args.size, args.splits)
+    cfg = state["model_config"]
+    entry = {"name": args.name, "preset": state["config"]["model"].get("preset", "tiny"),
+             "variant": cfg["variant"], "file": file.name, "sha256": sha256(file),
+             "train_command": args.train_command, "data": args.data, "steps": state["step"],
+             "storage": "float16" if half else "float32",
+             "float16_psnr_change_db": round(diff, 4),
+             "provenance": state.get("provenance", {}),
+             "metrics": {"eval_data": args.eval_data, "splits": shipped}}
+    manifest_path = ROOT / "manifest.json"
+    manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else []
+    manifest = [e for e in manifest if e["name"] != args.name] + [entry]
+    write_json(manifest_path, manifest)
+    std = shipped["standard"]
+    print(f"{args.name}: {file} ({file.stat().st_size / 2**20:.1f} MiB, {entry['storage']}; "
+          f"float16 moved PSNR by {diff:.4f} dB): standard PSNR {std['psnr']:.2f} dB, "
+          f"SSIM {std['ssim']:.3f}, AbsRel {std['abs_rel']:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
