@@ -9,7 +9,7 @@ import types
 
 import drjit as dr
 
-from usplat_dr import _llvm
+from usplat_dr import _llvm, portable
 
 
 def require_llvm() -> types.ModuleType:
@@ -32,6 +32,7 @@ def require_llvm() -> types.ModuleType:
         )
     import drjit.llvm.ad
 
+    portable.pin_drjit()  # before the first kernel compiles (a no-op unless USPLAT_PORTABLE)
     return drjit.llvm.ad
 
 

@@ -199,6 +199,10 @@ def _doctor(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from usplat_dr import portable
+
+    # Same numbers from the same command on every AVX2 CPU (before torch is imported).
+    portable.enable()
     parser = argparse.ArgumentParser(prog="usplat", description="usplat-dr: UniqueSplat with a "
                                      "Dr.Jit Gaussian rasteriser")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")

@@ -44,6 +44,9 @@ def environment() -> dict:
             "cores": os.cpu_count(), "torch_threads": torch.get_num_threads()}
     for package in ("torch", "drjit", "mitsuba", "numpy"):
         info[package] = _version(package)
+    from usplat_dr import portable
+
+    info["numerics"] = portable.describe()
     return info
 
 
