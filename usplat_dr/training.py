@@ -119,6 +119,17 @@ def dataset_from_config(dcfg: dict, stage: str, step_tracker=None, rank: int | N
     return ChunkDataset(cfg, stage, step_tracker, rank=rank, world_size=world_size)
 
 
+def adam(params, lr: float) -> torch.optim.Adam:
+    """Adam, fused where this torch has the fused kernel for the parameters' device (one
+    kernel for all parameters: 31 -> 14 ms a step for the tiny preset's 1.7M parameters on
+    one core; the same update up to float rounding)."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, TypeError):  # no fused kernel for this device or torch version
+        return torch.optim.Adam(params, lr=lr)
+
+
 # ---- distributed ---------------------------------------------------------------------------
 
 def setup_distributed(device: str, threads: int | None = None
@@ -289,7 +300,7 @@ class Trainer:
         self.batches = Batches(dataset_from_config(cfg.get("dataset") or {}, "train",
                                                    self.step_tracker),
                                dl["batch_size"], dl["num_workers"])
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=self.ocfg["lr"])
+        self.optimizer = adam(self.model.parameters(), self.ocfg["lr"])
         self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
             self.optimizer, self.ocfg["lr"], total_steps=self.tcfg["steps"] + 10,
             pct_start=self.ocfg["warm_up_fraction"], cycle_momentum=False,
@@ -368,13 +379,14 @@ class Trainer:
                    "specific": "grad_specific", "view_embedding": "grad_view_features"}
 
     def group_grad_norms(self) -> dict:
-        sums: dict[str, torch.Tensor] = {}
+        groups: dict[str, list[torch.Tensor]] = {}
         for name, p in self.model.named_parameters():
             key = self.GRAD_GROUPS.get(name.split(".", 1)[0])
             if key is not None and p.grad is not None:
-                sq = p.grad.detach().double().square().sum()
-                sums[key] = sums[key] + sq if key in sums else sq
-        return {k: v.sqrt().item() for k, v in sums.items()}
+                groups.setdefault(key, []).append(p.grad.detach())
+        # One foreach kernel per group (a per-parameter float64 sum cost ~14 ms a step).
+        norms = {k: torch.stack(torch._foreach_norm(g)).norm() for k, g in groups.items()}
+        return dict(zip(norms, torch.stack(list(norms.values())).tolist())) if norms else {}
 
     def train_step(self, batch: dict) -> dict | None:
         self.ddp.train()

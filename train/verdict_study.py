@@ -1,0 +1,134 @@
+"""The view-conditioning verdict, multi-seed (the paper's protocol): from one trained (a),
+fine-tune (a) on (the control), (b) and (c) for the same steps with each seed, evaluate all
+of them on the same held-out scenes, and compare paired per-scene differences with bootstrap
+95% intervals over scenes and seeds (``usplat_dr.verdict``).
+
+    python train/verdict_study.py --init checkpoints/tiny_baseline.pt \
+        --data outputs/big/train480 --eval-data outputs/big/test2000 \
+        --seeds 0 1 2 --steps 1000 --out outputs/verdict --jobs 2
+
+Each run trains and evaluates in its own process with one thread (``--jobs`` at a time) and
+is resumable: a second call skips finished runs and resumes killed ones. Writes
+``<out>/verdict.md``, ``verdict.json``, ``verdict.png`` and ``runs.json`` (steps and seconds
+per step of every run: the equal-wall-time view).
+"""
+
+import argparse
+import json
+import logging
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import usplat_dr  # noqa: F401  (libLLVM before drjit)
+
+CONFIG = Path(__file__).parent / "configs" / "synthetic_tiny_depth.yaml"
+VARIANTS = ("baseline", "agnostic", "full")
+
+
+def run_one(args, variant: str, seed: int) -> dict:
+    """Train and evaluate one (variant, seed) in this process, one thread."""
+    import torch
+
+    from usplat_dr.config import load_config
+    from usplat_dr.evaluation import evaluate, load_model, synthetic_indices
+    from usplat_dr.training import train
+
+    run = Path(args.out) / f"{variant}_seed{seed}"
+    done = run / "eval" / "per_scene.csv"
+    if done.is_file():
+        return json.loads((run / "run.json").read_text())
+    cfg = load_config([CONFIG], [
+        f"dataset.roots=[{args.data}]", f"output_dir={run}", f"model.variant={variant}",
+        f"model.init_from={args.init}", f"seed={seed}", f"dataset.overrides.seed={seed}",
+        f"train.steps={args.steps}", f"optimizer.lr={args.lr}",
+        f"optimizer.warm_up_fraction={args.warm_up}", "threads=1", "train.progress=false",
+        f"train.checkpoint_every={max(50, args.steps // 10)}",
+        f"train.validate_every={args.steps}"])
+    t0 = time.perf_counter()
+    result = train(cfg, resume=True)
+    seconds = time.perf_counter() - t0
+    model, step = load_model(run / "checkpoints" / "last.ckpt")
+    torch.set_num_threads(1)
+    summary = evaluate(model, {"name": "synth", "roots": [args.eval_data],
+                               "image_shape": [args.size, args.size]},
+                       synthetic_indices(args.eval_data), run / "eval", images_per_split=2,
+                       progress=False, label=f"{variant} seed {seed}")
+    rows = list(csv_rows(run / "metrics.csv"))
+    info = {"variant": variant, "seed": seed, "steps": step, "train_seconds": seconds,
+            "steps_per_s": float(rows[-1]["steps_per_s"]) if rows else None,
+            "final": result, "splits": summary["splits"]}
+    (run / "run.json").write_text(json.dumps(info, indent=1))
+    return info
+
+
+def csv_rows(path: Path):
+    import csv
+
+    with open(path) as f:
+        yield from csv.DictReader(f)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--init", required=True, help="the trained (a) all runs start from")
+    p.add_argument("--data", required=True, help="training set root")
+    p.add_argument("--eval-data", required=True, help="held-out synthetic set root")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    p.add_argument("--steps", type=int, default=1000, help="fine-tuning steps per run")
+    p.add_argument("--lr", type=float, default=2e-4, help="peak learning rate")
+    p.add_argument("--warm-up", type=float, default=0.05, help="warm-up fraction")
+    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--out", default="outputs/verdict")
+    p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
+    p.add_argument("--job", nargs=2, metavar=("VARIANT", "SEED"), help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    if "baseline" not in args.variants:
+        p.error("--variants must include baseline (the control every variant is paired with)")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.job:  # a worker: one run
+        run_one(args, args.job[0], int(args.job[1]))
+        return 0
+
+    def launch(job):
+        variant, seed = job
+        log = out / f"{variant}_seed{seed}.log"
+        with open(log, "a") as f:
+            code = subprocess.call([sys.executable, __file__, *(argv or sys.argv[1:]),
+                                    "--job", variant, str(seed)], stdout=f, stderr=f)
+        print(f"{variant} seed {seed}: {'done' if code == 0 else f'FAILED ({log})'}",
+              flush=True)
+        return code
+
+    jobs = [(v, s) for s in args.seeds for v in args.variants]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        codes = list(pool.map(launch, jobs))
+    if any(codes):
+        return 1
+    from usplat_dr.io import write_json
+    from usplat_dr.verdict import as_dicts, chart, compare, table
+
+    runs = {v: [out / f"{v}_seed{s}" / "eval" / "per_scene.csv" for s in args.seeds]
+            for v in args.variants}
+    rows = compare(runs)
+    infos = [json.loads((out / f"{v}_seed{s}" / "run.json").read_text()) for v, s in jobs]
+    write_json(out / "runs.json", infos)
+    write_json(out / "verdict.json", {"args": vars(args), "rows": as_dicts(rows)})
+    chart(rows, out / "verdict.png")
+    speed = {v: sum(i["train_seconds"] for i in infos if i["variant"] == v)
+             / sum(i["steps"] for i in infos if i["variant"] == v) for v in args.variants}
+    text = (f"# Verdict: {len(args.seeds)} seeds x {args.steps} fine-tuning steps from "
+            f"`{args.init}`\n\n{table(rows)}\n\nSeconds per training step (one thread): "
+            + ", ".join(f"{v} {s:.3f}" for v, s in speed.items()) + "\n\n![](verdict.png)\n")
+    (out / "verdict.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
