@@ -28,9 +28,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
+from usplat_dr.evaluation import nan_mean
 from usplat_dr.render.prune import PruneSettings
 
 log = logging.getLogger(__name__)
@@ -230,7 +230,7 @@ def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes
                 a["ssim"].append(ssim(out.color[0], gt).mean().item())
                 dm = [depth_metrics(out.depth[0, j].cpu(), out.alpha[0, j].cpu(),
                                     tgt["depth"][0, j])["abs_rel"] for j in range(n)]
-                a["abs_rel"].append(float(np.nanmean(dm)))
+                a["abs_rel"].append(nan_mean(dm))
                 rendered = out.aux["rendered"].float().mean().item()
                 a["gaussians"].append(rendered)
                 a["kept"].append(rendered / total)
@@ -252,7 +252,7 @@ def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes
             "gaussians_per_view": statistics.mean(a["gaussians"]),
             "kept_fraction": statistics.mean(a["kept"]),
             "psnr": statistics.mean(a["psnr"]), "ssim": statistics.mean(a["ssim"]),
-            "abs_rel": float(np.nanmean(a["abs_rel"])), "scenes": len(examples)})
+            "abs_rel": nan_mean(a["abs_rel"]), "scenes": len(examples)})
     for r in rows:  # PSNR change against rendering everything, same model and size
         base = next((q for q in rows if q["config"] == r["config"] and q["prune"] == "all"
                      and q["render_size"] == r["render_size"]), None)

@@ -52,6 +52,15 @@ def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"
     return model.to(device).eval(), state.get("step", 0)
 
 
+def nan_mean(values) -> float:
+    """Mean of the finite-or-inf values, NaN (without NumPy's "Mean of empty slice" warning)
+    when every value is NaN: a scene whose targets cover no ground-truth pixel has no depth
+    error."""
+    a = np.asarray(values, dtype=np.float64)
+    a = a[~np.isnan(a)]
+    return float(a.mean()) if a.size else float("nan")
+
+
 def depth_metrics(pred_depth: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor) -> dict:
     """AbsRel, RMSE and delta < 1.25 over pixels with finite ground truth that the prediction
     covers (alpha > 0.5); the rasteriser's depth is alpha-weighted, so divide by alpha."""
@@ -124,7 +133,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
                 dm = [depth_metrics(result.depth[0, j].cpu(), result.alpha[0, j].cpu(),
                                     batch["target"]["depth"][0, j]) for j in range(len(gt))]
                 for key in ("abs_rel", "rmse", "delta1"):
-                    row[key] = float(np.nanmean([d[key] for d in dm]))
+                    row[key] = nan_mean([d[key] for d in dm])
             rows.append(row)
             scenes.append(row)
             if i < images_per_split:
@@ -138,7 +147,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         metrics = {}
         for key in ("psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1"):
             vals = [r[key] for r in scenes if key in r]
-            metrics[key] = float(np.nanmean(vals)) if vals else None
+            metrics[key] = nan_mean(vals) if vals else None
         if lpips is None:
             metrics["lpips"] = "unavailable (no LPIPS weight files given)"
         summary["splits"][split] = {"scenes": len(scenes), **metrics}
