@@ -70,20 +70,24 @@ def test_evaluate_follows_the_protocol_and_writes_files(tmp_path):
 
 
 def test_demo_quick_end_to_end(tmp_path):
-    from usplat_dr.demo_job import run_demo
+    from usplat_dr.demo_job import SHIPPED, run_demo
 
-    report = run_demo(tmp_path, "quick")
+    report = run_demo(tmp_path, "quick")  # from the shipped checkpoints (checkpoints/)
     text = report.read_text()
-    assert "| (a) primary network |" in text and "| (c) UniqueSplat |" in text
-    assert (tmp_path / "training_curves.png").is_file()
-    for variant in ("baseline", "full"):
-        s = json.loads((tmp_path / f"eval_{variant}" / "summary.json").read_text())
+    assert "| (a) primary network `tiny_baseline_continued`" in text
+    assert "| (c) UniqueSplat `tiny_full`" in text
+    assert "## Verdict on view conditioning" in text and "| standard | psnr | (c) - (a) |" in text
+    assert (tmp_path / "training_curves.png").is_file() and (tmp_path / "verdict.png").is_file()
+    for variant in SHIPPED:
+        s = json.loads((tmp_path / f"eval_shipped_{variant}" / "summary.json").read_text())
         assert s["variant"] == variant and math.isfinite(s["splits"]["standard"]["psnr"])
+    for variant in ("baseline", "full"):  # the brief fine-tuning from the shipped (a)
         assert (tmp_path / f"train_{variant}" / "checkpoints" / "last.ckpt").is_file()
+    assert "sha256" in text and "drjit" in text  # where the numbers came from
     images = [line for line in text.splitlines() if line.startswith("![")]
     assert all((tmp_path / line.split("(")[1].rstrip(")")).is_file() for line in images)
 
-    # the trained (c) model's video and PLY export through the CLI
+    # the fine-tuned (c) model's video and PLY export through the CLI
     from usplat_dr.cli import main
 
     ckpt = str(tmp_path / "train_full" / "checkpoints" / "last.ckpt")
@@ -101,6 +105,7 @@ def test_demo_quick_end_to_end(tmp_path):
     # the report's stress, bench and stability sections
     assert "### Worst cases" in text and "## Speed against accuracy" in text
     assert "view-specific H_s" in text  # gradient norms of the hypernetwork branches
+    assert "Warning" not in text
     import csv
 
     with open(tmp_path / "bench_demo" / "bench.csv") as f:

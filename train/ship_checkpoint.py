@@ -47,11 +47,13 @@ def main(argv=None) -> int:
     p.add_argument("--data", required=True, help="what it was trained on, in words")
     p.add_argument("--splits", nargs="+", default=None, help="splits to evaluate (all)")
     p.add_argument("--size", type=int, default=64, help="evaluation image size")
+    p.add_argument("--root", type=Path, default=ROOT, help="checkpoints folder (with its "
+                   "manifest.json)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
 
     reference = held_out(args.checkpoint, args.eval_data, args.size, ["standard"])
-    file = ROOT / f"{args.name}.pt"
+    file = args.root / f"{args.name}.pt"
     import torch
 
     state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
@@ -64,14 +66,18 @@ def main(argv=None) -> int:
         export_weights(args.checkpoint, file, half=False, metadata=metadata)
         shipped = held_out(file, args.eval_data, args.size, args.splits)
     cfg = state["model_config"]
+    init = state["config"]["model"].get("init_from")
+    init_steps = (torch.load(init, map_location="cpu", weights_only=False)["step"]
+                  if init else 0)
     entry = {"name": args.name, "preset": state["config"]["model"].get("preset", "tiny"),
              "variant": cfg["variant"], "file": file.name, "sha256": sha256(file),
-             "train_command": args.train_command, "data": args.data, "steps": state["step"],
+             "train_command": args.train_command, "data": args.data, "steps": init_steps + state["step"],
+             "init_from": init, "finetune_steps": state["step"] if init else None,
              "storage": "float16" if half else "float32",
              "float16_psnr_change_db": round(diff, 4),
              "provenance": state.get("provenance", {}),
              "metrics": {"eval_data": args.eval_data, "splits": shipped}}
-    manifest_path = ROOT / "manifest.json"
+    manifest_path = args.root / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else []
     manifest = [e for e in manifest if e["name"] != args.name] + [entry]
     write_json(manifest_path, manifest)

@@ -134,16 +134,22 @@ class PeakMemory:
 
 def train_configs(out: Path, budget: str, configs, seed: int = 0, jobs: int = 0) -> dict:
     """Train what is missing (a finished run is reused; an interrupted one resumes)."""
-    from usplat_dr.demo_job import BUDGETS, ensure_data, training_config
+    from usplat_dr.demo_job import BASE, BUDGETS, ensure_data, shipped_checkpoints, training_config
     from usplat_dr.training import train
 
     ensure_data(out, budget, seed, jobs)
     b = BUDGETS[budget]
+    try:  # the tiny preset fine-tunes from the shipped (a), as the demo does
+        base = shipped_checkpoints().get(BASE)
+    except FileNotFoundError:
+        base = None
     runs = {}
     for c in configs:
         run = c.run_dir(out)
         log.info("bench: training %s in %s", c.label, run)
-        train(training_config(out / "data", run, b, c.variant, preset=c.preset), resume=True)
+        init = base if c.preset == "tiny" else None
+        train(training_config(out / "data", run, b, c.variant, preset=c.preset, init=init),
+              resume=True)
         runs[c] = run
     return runs
 

@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 #: Metrics compared, and whether higher is better.
 METRICS = {"psnr": True, "ssim": True, "abs_rel": False}
 LABELS = {"baseline": "(a)", "agnostic": "(b)", "full": "(c)"}
+MIN_PAIRS = 5
 
 
 @dataclass(frozen=True)
@@ -48,7 +49,10 @@ class Comparison:
     @property
     def verdict(self) -> str:
         """'better' / 'worse' when the interval excludes 0 (in the metric's good direction),
-        else 'no difference shown'."""
+        else 'no difference shown'; 'too few scenes' under ``MIN_PAIRS`` paired values (a
+        bootstrap of one or two values has no meaningful interval)."""
+        if self.scenes * self.seeds < MIN_PAIRS:
+            return "too few scenes"
         good = self.low > 0 if METRICS[self.metric] else self.high < 0
         bad = self.high < 0 if METRICS[self.metric] else self.low > 0
         return "better" if good else "worse" if bad else "no difference shown"

@@ -1,0 +1,115 @@
+"""Training throughput: one training step of the tiny preset at 64x64 (2 context + 4 target
+views), variants (a) and (c), timed phase by phase (data to device, forward, loss, backward,
+gradient norms + clipping, optimiser), the current trainer against the previous one (Adam
+unfused, per-parameter float64 gradient norms) in the same process, interleaved step by step.
+Wall and process CPU time; medians over steps.
+
+    python train/bench_training.py --data outputs/big/train480 --threads 1 --steps 20
+"""
+
+import argparse
+import statistics
+import sys
+import time
+
+import usplat_dr  # noqa: F401  (libLLVM before drjit)
+
+
+def old_group_grad_norms(trainer) -> dict:
+    """The previous trainer's per-group norms: a float64 sum per parameter."""
+    import torch
+
+    sums: dict = {}
+    for name, p in trainer.model.named_parameters():
+        key = trainer.GRAD_GROUPS.get(name.split(".", 1)[0])
+        if key is not None and p.grad is not None:
+            sq = p.grad.detach().double().square().sum()
+            sums[key] = sums[key] + sq if key in sums else sq
+    return {k: torch.sqrt(v).item() for k, v in sums.items()}
+
+
+def timed_step(trainer, batch, old: bool) -> dict:
+    import torch
+
+    from usplat_dr.training import scene_args
+
+    t, c = {}, {}
+
+    def mark(name, t0, c0):
+        t[name], c[name] = time.perf_counter() - t0, time.process_time() - c0
+        return time.perf_counter(), time.process_time()
+
+    w0, p0 = time.perf_counter(), time.process_time()
+    trainer.model.train()
+    args = scene_args(batch, trainer.device)
+    trainer.optimizer.zero_grad(set_to_none=True)
+    w, p = mark("data", w0, p0)
+    out = trainer.model(*args, global_step=trainer.step)
+    w, p = mark("forward", w, p)
+    loss, _ = trainer.loss(out, batch)
+    w, p = mark("loss", w, p)
+    loss.backward()
+    w, p = mark("backward", w, p)
+    (old_group_grad_norms if old else type(trainer).group_grad_norms)(trainer)
+    torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), 0.5)
+    w, p = mark("norms+clip", w, p)
+    trainer.optimizer.step()
+    mark("optimiser", w, p)
+    t["total"], c["total"] = time.perf_counter() - w0, time.process_time() - p0
+    return {"wall": t, "cpu": c}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", required=True, help="a synthetic training set (64x64)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
+    p.add_argument("--variants", nargs="+", default=["baseline", "full"])
+    args = p.parse_args(argv)
+    import logging
+
+    import torch
+
+    from usplat_dr.config import load_config
+    from usplat_dr.training import Trainer
+
+    logging.basicConfig(level=logging.ERROR)
+    logging.getLogger("usplat_dr").setLevel(logging.ERROR)
+    trainers = {}
+    for variant in args.variants:
+        for old in (True, False):
+            torch.manual_seed(0)
+            cfg = load_config(["train/configs/synthetic_tiny_depth.yaml"], [
+                f"dataset.roots=[{args.data}]", "output_dir=/tmp/bench_training",
+                f"model.variant={variant}", f"threads={args.threads}", "train.progress=false"])
+            tr = Trainer(cfg)
+            if old:
+                tr.optimizer = torch.optim.Adam(tr.model.parameters(), lr=1e-3)
+            trainers[(variant, old)] = tr
+    batches = [next(iter(trainers.values())).batches.next() for _ in range(args.steps + 3)]
+    results = {k: [] for k in trainers}
+    for i, batch in enumerate(batches):  # interleaved: a busy machine slows all alike
+        for (variant, old), tr in trainers.items():
+            r = timed_step(tr, batch, old)
+            if i >= 3:  # warm-up: kernels compile, allocator settles
+                results[(variant, old)].append(r)
+    phases = ["data", "forward", "loss", "backward", "norms+clip", "optimiser", "total"]
+    print(f"threads={args.threads}, {args.steps} steps per configuration, medians (ms); "
+          f"CPU = process CPU time")
+    print("| variant | trainer | " + " | ".join(phases) + " | steps/s | CPU ms/step |")
+    print("|---|---|" + "---|" * (len(phases) + 2))
+    for (variant, old), rs in results.items():
+        med = {ph: 1000 * statistics.median(r["wall"][ph] for r in rs) for ph in phases}
+        cpu = 1000 * statistics.median(r["cpu"]["total"] for r in rs)
+        print(f"| {variant} | {'previous' if old else 'current'} | "
+              + " | ".join(f"{med[ph]:.1f}" for ph in phases)
+              + f" | {1000 / med['total']:.2f} | {cpu:.0f} |")
+    for variant in args.variants:
+        old = statistics.median(r["wall"]["total"] for r in results[(variant, True)])
+        new = statistics.median(r["wall"]["total"] for r in results[(variant, False)])
+        print(f"{variant}: current / previous = {new / old:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
