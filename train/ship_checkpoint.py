@@ -71,7 +71,8 @@ def main(argv=None) -> int:
                   if init else 0)
     entry = {"name": args.name, "preset": state["config"]["model"].get("preset", "tiny"),
              "variant": cfg["variant"], "file": file.name, "sha256": sha256(file),
-             "train_command": args.train_command, "data": args.data, "steps": init_steps + state["step"],
+             "train_command": args.train_command, "data": args.data,
+             "steps": init_steps + state["step"],
              "init_from": init, "finetune_steps": state["step"] if init else None,
              "storage": "float16" if half else "float32",
              "float16_psnr_change_db": round(diff, 4),

@@ -28,25 +28,32 @@ CONFIG = Path(__file__).parent / "configs" / "synthetic_tiny_depth.yaml"
 VARIANTS = ("baseline", "agnostic", "full")
 
 
+def run_name(variant: str, seed: int) -> str:
+    return f"{variant}_seed{seed}"
+
+
 def run_one(args, variant: str, seed: int) -> dict:
-    """Train and evaluate one (variant, seed) in this process, one thread."""
+    """Train and evaluate one (variant, seed) in this process, one thread. ``variant``
+    ``baseline_wall`` is (a) trained on for ``--wall-ratio`` times the steps: (a) at the
+    wall time (c) takes."""
     import torch
 
     from usplat_dr.config import load_config
     from usplat_dr.evaluation import evaluate, load_model, synthetic_indices
     from usplat_dr.training import train
 
-    run = Path(args.out) / f"{variant}_seed{seed}"
+    run = Path(args.out) / run_name(variant, seed)
+    steps = round(args.steps * args.wall_ratio) if variant == "baseline_wall" else args.steps
+    model_variant = "baseline" if variant == "baseline_wall" else variant
     done = run / "eval" / "per_scene.csv"
     if done.is_file():
         return json.loads((run / "run.json").read_text())
     cfg = load_config([CONFIG], [
-        f"dataset.roots=[{args.data}]", f"output_dir={run}", f"model.variant={variant}",
+        f"dataset.roots=[{args.data}]", f"output_dir={run}", f"model.variant={model_variant}",
         f"model.init_from={args.init}", f"seed={seed}", f"dataset.overrides.seed={seed}",
-        f"train.steps={args.steps}", f"optimizer.lr={args.lr}",
+        f"train.steps={steps}", f"optimizer.lr={args.lr}",
         f"optimizer.warm_up_fraction={args.warm_up}", "threads=1", "train.progress=false",
-        f"train.checkpoint_every={max(50, args.steps // 10)}",
-        f"train.validate_every={args.steps}"])
+        f"train.checkpoint_every={max(50, steps // 10)}", f"train.validate_every={steps}"])
     t0 = time.perf_counter()
     result = train(cfg, resume=True)
     seconds = time.perf_counter() - t0
@@ -84,6 +91,9 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--out", default="outputs/verdict")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
+    p.add_argument("--wall-ratio", type=float, default=None,
+                   help="also train (a) for this many times the steps: (a) at (c)'s wall time "
+                        "(the ratio of their seconds per step, train/bench_training.py)")
     p.add_argument("--job", nargs=2, metavar=("VARIANT", "SEED"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -106,6 +116,8 @@ def main(argv=None) -> int:
         return code
 
     jobs = [(v, s) for s in args.seeds for v in args.variants]
+    if args.wall_ratio:
+        jobs += [("baseline_wall", s) for s in args.seeds]
     with ThreadPoolExecutor(args.jobs) as pool:
         codes = list(pool.map(launch, jobs))
     if any(codes):
@@ -113,18 +125,28 @@ def main(argv=None) -> int:
     from usplat_dr.io import write_json
     from usplat_dr.verdict import as_dicts, chart, compare, table
 
-    runs = {v: [out / f"{v}_seed{s}" / "eval" / "per_scene.csv" for s in args.seeds]
-            for v in args.variants}
-    rows = compare(runs)
-    infos = [json.loads((out / f"{v}_seed{s}" / "run.json").read_text()) for v, s in jobs]
+    def csvs(v):
+        return [out / run_name(v, s) / "eval" / "per_scene.csv" for s in args.seeds]
+
+    rows = compare({v: csvs(v) for v in args.variants})
+    wall_rows = (compare({"baseline": csvs("baseline_wall"), "full": csvs("full")})
+                 if args.wall_ratio and "full" in args.variants else [])
+    infos = [json.loads((out / run_name(v, s) / "run.json").read_text()) for v, s in jobs]
     write_json(out / "runs.json", infos)
-    write_json(out / "verdict.json", {"args": vars(args), "rows": as_dicts(rows)})
+    write_json(out / "verdict.json", {"args": vars(args), "rows": as_dicts(rows),
+                                      "equal_wall_time_rows": as_dicts(wall_rows)})
     chart(rows, out / "verdict.png")
     speed = {v: sum(i["train_seconds"] for i in infos if i["variant"] == v)
-             / sum(i["steps"] for i in infos if i["variant"] == v) for v in args.variants}
+             / sum(i["steps"] for i in infos if i["variant"] == v)
+             for v in {v for v, _ in jobs}}
     text = (f"# Verdict: {len(args.seeds)} seeds x {args.steps} fine-tuning steps from "
-            f"`{args.init}`\n\n{table(rows)}\n\nSeconds per training step (one thread): "
-            + ", ".join(f"{v} {s:.3f}" for v, s in speed.items()) + "\n\n![](verdict.png)\n")
+            f"`{args.init}`\n\n## Equal steps\n\n{table(rows)}\n\n")
+    if wall_rows:
+        text += (f"## Equal wall time: (c) against (a) trained {args.wall_ratio:g}x the "
+                 f"steps\n\n{table(wall_rows)}\n\n")
+    text += ("Seconds per training step (one thread, including start-up): "
+             + ", ".join(f"{v} {s:.3f}" for v, s in sorted(speed.items()))
+             + "\n\n![](verdict.png)\n")
     (out / "verdict.md").write_text(text)
     print(text)
     return 0
