@@ -17,6 +17,9 @@ import sys
 from pathlib import Path
 
 import usplat_dr  # noqa: F401  (libLLVM before drjit)
+from usplat_dr import portable
+
+portable.enable()  # AVX2 code paths, as the usplat command (before torch is imported)
 
 CONFIG = Path(__file__).parent / "configs" / "synthetic_tiny_depth.yaml"
 

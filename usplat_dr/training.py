@@ -156,6 +156,9 @@ def setup_distributed(device: str, threads: int | None = None
     if device == "cpu":
         import drjit as dr
 
+        from usplat_dr.backend import require_llvm
+
+        require_llvm()  # pins Dr.Jit's target now (USPLAT_PORTABLE), before any kernel
         dr.set_thread_count(threads)
     return rank, world, dev
 
