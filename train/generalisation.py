@@ -103,7 +103,10 @@ def main(argv=None) -> int:
               title=f"tiny (a), {args.steps} steps")
     ax[1].plot(x, [r["held_out_abs_rel"] for r in rows], "o-")
     ax[1].set(xscale="log", xlabel="distinct training scenes", ylabel="held-out depth AbsRel")
+    ax[1].set(yscale="log")
     for a in ax:
+        a.set_xticks(x, [str(n) for n in x])
+        a.minorticks_off()
         a.grid(alpha=0.3)
     ax[0].legend(fontsize=8)
     fig.tight_layout()
