@@ -35,6 +35,17 @@ def device(backend) -> torch.device:
     return torch.device("cpu" if backend == "llvm" else "cuda")
 
 
+@pytest.fixture
+def restore_threads():
+    """Trainer sets the process's torch and Dr.Jit thread counts; put them back."""
+    import drjit as dr
+
+    torch_threads, dr_threads = torch.get_num_threads(), dr.thread_count()
+    yield
+    torch.set_num_threads(torch_threads)
+    dr.set_thread_count(dr_threads)
+
+
 @pytest.fixture(autouse=True)
 def _flush_denormals():
     # exp() of large negative powers in the dense reference gives denormals, which make float64

@@ -22,16 +22,7 @@ from usplat_dr.training import (
 )
 
 CONFIGS = Path(__file__).parents[1] / "train" / "configs"
-
-
-@pytest.fixture(autouse=True)
-def _restore_threads():
-    import drjit as dr
-
-    torch_threads, dr_threads = torch.get_num_threads(), dr.thread_count()
-    yield
-    torch.set_num_threads(torch_threads)
-    dr.set_thread_count(dr_threads)
+pytestmark = pytest.mark.usefixtures("restore_threads")
 
 
 @pytest.fixture(scope="module")

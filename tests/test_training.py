@@ -16,17 +16,7 @@ from usplat_dr.lpips import LPIPSWeightsMissing
 from usplat_dr.training import Trainer, TrainingStopped, dataset_from_config
 
 CONFIGS = Path(__file__).parents[1] / "train" / "configs"
-
-
-@pytest.fixture(autouse=True)
-def _restore_threads():
-    """Trainer sets the process's torch and Dr.Jit thread counts; put them back."""
-    import drjit as dr
-
-    torch_threads, dr_threads = torch.get_num_threads(), dr.thread_count()
-    yield
-    torch.set_num_threads(torch_threads)
-    dr.set_thread_count(dr_threads)
+pytestmark = pytest.mark.usefixtures("restore_threads")
 
 
 @pytest.fixture(scope="module")
