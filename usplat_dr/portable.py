@@ -21,6 +21,7 @@ This module has no third-party imports (``usplat_dr/__init__`` may import it).
 """
 
 import ctypes
+import functools
 import logging
 import os
 from pathlib import Path
@@ -48,6 +49,7 @@ def enable() -> None:
             os.environ.setdefault(key, value)
 
 
+@functools.cache
 def _host_has_avx2_fma() -> bool:
     try:
         flags = next((line for line in Path("/proc/cpuinfo").read_text().splitlines()
@@ -82,10 +84,10 @@ def pin_drjit(target: tuple[str, str, int] = DRJIT_TARGET) -> bool:
     Does nothing unless portable numerics are on and the host has AVX2 and FMA. Returns
     whether the target is pinned."""
     global _pinned
+    if _pinned == target:  # the common case: called before every CPU render
+        return True
     if not enabled() or not _host_has_avx2_fma():
         return False
-    if _pinned == target:
-        return True
     try:
         lib = _core()
         set_target = lib._Z19jit_llvm_set_targetPKcS0_j
