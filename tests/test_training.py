@@ -208,3 +208,22 @@ def test_usplat_train_writes_checkpoint_metrics_and_validation_grid(synth_root, 
     assert (tmp_path / "validation" / "step_0000002.png").is_file()
     rows = (tmp_path / "metrics.csv").read_text().splitlines()
     assert rows[0].startswith("step,loss") and rows[-1].startswith("2,")
+
+
+def test_hyper_lr_scale_gives_the_hypernetwork_branches_their_own_rate(synth_root, tmp_path):
+    from usplat_dr.training import parameter_groups
+
+    trainer = Trainer(config(synth_root, tmp_path / "h", 4, "model.variant=full",
+                             "optimizer.hyper_lr_scale=10", "threads=1"))
+    primary, hyper = trainer.optimizer.param_groups
+    names = {id(p): n for n, p in trainer.model.named_parameters()}
+    assert all(names[id(p)].startswith("primary.") for p in primary["params"])
+    assert not any(names[id(p)].startswith("primary.") for p in hyper["params"])
+    assert len(primary["params"]) + len(hyper["params"]) == len(names)
+    for _ in range(3):  # the one-cycle schedule keeps the ratio at every step
+        assert hyper["lr"] == pytest.approx(10 * primary["lr"], rel=1e-12)
+        trainer.scheduler.step()
+    # scale 1 (the default) or a model without hypernetworks: Adam's single group
+    assert len(parameter_groups(trainer.model, 1e-3)) == 1
+    with pytest.raises(ConfigError, match="hyper_lr_scale"):
+        parameter_groups(trainer.model, 1e-3, 0)

@@ -55,7 +55,8 @@ def run_one(args, variant: str, seed: int) -> dict:
         f"dataset.roots=[{args.data}]", f"output_dir={run}", f"model.variant={model_variant}",
         f"model.init_from={args.init}", f"seed={seed}", f"dataset.overrides.seed={seed}",
         f"train.steps={steps}", f"optimizer.lr={args.lr}",
-        f"optimizer.warm_up_fraction={args.warm_up}", "threads=1", "train.progress=false",
+        f"optimizer.warm_up_fraction={args.warm_up}",
+        f"optimizer.hyper_lr_scale={args.hyper_lr_scale}", "threads=1", "train.progress=false",
         f"train.checkpoint_every={max(50, steps // 10)}", f"train.validate_every={steps}"])
     t0 = time.perf_counter()
     result = train(cfg, resume=True)
@@ -91,6 +92,9 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=1000, help="fine-tuning steps per run")
     p.add_argument("--lr", type=float, default=2e-4, help="peak learning rate")
     p.add_argument("--warm-up", type=float, default=0.05, help="warm-up fraction")
+    p.add_argument("--hyper-lr-scale", type=float, default=1.0,
+                   help="learning rate of the hypernetwork branches over --lr "
+                        "(optimizer.hyper_lr_scale; (a) has none)")
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--out", default="outputs/verdict")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
