@@ -21,7 +21,7 @@ from usplat_dr.training import (
     scene_args,
 )
 
-CONFIGS = Path(__file__).parents[1] / "train" / "configs"
+CONFIGS = Path(__file__).parents[1] / "usplat_dr" / "configs"
 pytestmark = pytest.mark.usefixtures("restore_threads")
 
 

@@ -1,5 +1,5 @@
 """Evaluation: depth metrics from their definitions, the protocol's per-scene then per-split
-means, the files ``usplat eval`` writes, and ``usplat demo --quick`` end to end."""
+means, and the files ``usplat eval`` writes."""
 
 import csv
 import json
@@ -67,60 +67,3 @@ def test_evaluate_follows_the_protocol_and_writes_files(tmp_path):
     assert saved["parameters"] == sum(p.numel() for p in model.parameters())
     with pytest.raises(FileNotFoundError, match="usplat train writes"):
         load_model(tmp_path / "missing.ckpt")
-
-
-def test_demo_quick_end_to_end(tmp_path):
-    from usplat_dr.demo_job import SHIPPED, run_demo
-
-    report = run_demo(tmp_path, "quick")  # from the shipped checkpoints (checkpoints/)
-    text = report.read_text()
-    assert "| (a) primary network `tiny_baseline_continued`" in text
-    assert "| (c) UniqueSplat `tiny_full`" in text
-    assert "## Verdict on view conditioning" in text and "| standard | psnr | (c) - (a) |" in text
-    assert (tmp_path / "training_curves.png").is_file() and (tmp_path / "verdict.png").is_file()
-    for variant in SHIPPED:
-        s = json.loads((tmp_path / f"eval_shipped_{variant}" / "summary.json").read_text())
-        assert s["variant"] == variant and math.isfinite(s["splits"]["standard"]["psnr"])
-    for variant in ("baseline", "full"):  # the brief fine-tuning from the shipped (a)
-        assert (tmp_path / f"train_{variant}" / "checkpoints" / "last.ckpt").is_file()
-    assert "sha256" in text and "drjit" in text  # where the numbers came from
-    images = [line for line in text.splitlines() if line.startswith("![")]
-    assert all((tmp_path / line.split("(")[1].rstrip(")")).is_file() for line in images)
-
-    # the fine-tuned (c) model's video and PLY export through the CLI
-    from usplat_dr.cli import main
-
-    ckpt = str(tmp_path / "train_full" / "checkpoints" / "last.ckpt")
-    common = ["--checkpoint", ckpt, "--data", str(tmp_path / "data"), "--image-shape", "32",
-              "32"]
-    assert main(["-q", "render", *common, "--frames", "6", "--out",
-                 str(tmp_path / "video")]) == 0
-    assert list(tmp_path.glob("video.*"))
-    assert main(["-q", "export-ply", *common, "--target", "1", "--out",
-                 str(tmp_path / "g.ply")]) == 0
-    from usplat_dr.ply import read_ply
-
-    assert read_ply(tmp_path / "g.ply")["means"].shape == (2 * 32 * 32, 3)
-
-    # the report's stress, bench and stability sections
-    assert "### Worst cases" in text and "## Speed against accuracy" in text
-    assert "view-specific H_s" in text  # gradient norms of the hypernetwork branches
-    assert "Warning" not in text
-    import csv
-
-    with open(tmp_path / "bench_demo" / "bench.csv") as f:
-        rows = list(csv.DictReader(f))
-    by = {(r["config"], r["prune"], r["render_size"]): r for r in rows}
-    assert len(by) == len(rows) == 2 * (6 + 1)  # 2 models x (6 budgets at 32 px + 16 px)
-    for config in ("tiny (a)", "tiny (c)"):
-        # exact culling: same PSNR (float32 summation order only)
-        assert abs(float(by[(config, "cull", "32")]["psnr_change_db"])) < 1e-3
-        assert float(by[(config, "keep25%", "32")]["kept_fraction"]) <= 0.25 + 1e-6
-        assert float(by[(config, "cull", "32")]["gaussians_per_view"]) <= 2 * 32 * 32
-
-    # `usplat bench` reuses the demo's trained runs (same folder) and adds nothing to train
-    assert main(["-q", "bench", "--quick", "--out", str(tmp_path), "--configs",
-                 "tiny:a,tiny:c", "--prunes", "all,cull", "--render-sizes", "32"]) == 0
-    assert (tmp_path / "bench" / "bench.png").is_file()
-    summary = json.loads((tmp_path / "bench" / "summary.json").read_text())
-    assert summary["pruning"]["cull"]["safe"]

@@ -15,7 +15,7 @@ from usplat_dr.data.synth import synthesize
 from usplat_dr.lpips import LPIPSWeightsMissing
 from usplat_dr.training import Trainer, TrainingStopped, dataset_from_config
 
-CONFIGS = Path(__file__).parents[1] / "train" / "configs"
+CONFIGS = Path(__file__).parents[1] / "usplat_dr" / "configs"
 pytestmark = pytest.mark.usefixtures("restore_threads")
 
 
@@ -58,6 +58,15 @@ def test_config_composition_and_errors(tmp_path):
     (tmp_path / "a.yaml").write_text("include: [a.yaml]\n")
     with pytest.raises(ConfigError, match="includes itself"):
         load_config([tmp_path / "a.yaml"])
+    # packaged configs by name; a user's file includes a file beside it or a packaged name
+    assert load_config(["synthetic_tiny.yaml"]) == load_config([CONFIGS / "synthetic_tiny.yaml"])
+    (tmp_path / "mine.yaml").write_text("include: [synthetic_tiny.yaml, b.yaml]\nseed: 3\n")
+    (tmp_path / "b.yaml").write_text("train: {steps: 7}\n")
+    mine = load_config([tmp_path / "mine.yaml"])
+    assert mine["seed"] == 3 and mine["train"]["steps"] == 7
+    assert mine["model"]["preset"] == "tiny"  # from the packaged model/tiny.yaml
+    with pytest.raises(ConfigError, match=r"not a packaged config.*synthetic_tiny_depth\.yaml"):
+        load_config(["train/configs/synthetic_tiny.yaml"])  # the old location
 
 
 def test_bad_sections_and_missing_lpips_files_stop_at_start(synth_root, tmp_path):

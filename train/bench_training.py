@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     for variant in args.variants:
         for old in (True, False):
             torch.manual_seed(0)
-            cfg = load_config(["train/configs/synthetic_tiny_depth.yaml"], [
+            cfg = load_config(["synthetic_tiny_depth.yaml"], [
                 f"dataset.roots=[{args.data}]", "output_dir=/tmp/bench_training",
                 f"model.variant={variant}", f"threads={args.threads}", "train.progress=false"])
             tr = Trainer(cfg)

@@ -1,6 +1,6 @@
 """Training entry point (the same as ``usplat train``).
 
-    python train/train.py --config train/configs/synthetic_tiny.yaml train.steps=500
+    python train/train.py --config synthetic_tiny.yaml train.steps=500
     torchrun --nproc_per_node 2 train/train.py --config ... data_loader.batch_size=1
     python train/train.py --config ... --resume      # continue a killed run exactly
 """

@@ -27,7 +27,7 @@ from usplat_dr import portable
 
 portable.enable()  # AVX2 code paths, as the usplat command (before torch is imported)
 
-CONFIG = Path(__file__).parent / "configs" / "synthetic_tiny_depth.yaml"
+CONFIG = "synthetic_tiny_depth.yaml"  # packaged (usplat_dr/configs/)
 VARIANTS = ("baseline", "agnostic", "full")
 
 

@@ -92,9 +92,9 @@ def _params(args) -> int:
 
 def _train(args) -> int:
     from usplat_dr.config import load_config
-    from usplat_dr.training import CONFIG_DIR, train
+    from usplat_dr.training import train
 
-    cfg = load_config(args.config or [CONFIG_DIR / "synthetic_tiny.yaml"], args.overrides)
+    cfg = load_config(args.config or ["synthetic_tiny.yaml"], args.overrides)
     result = train(cfg, resume=args.resume)
     print(json.dumps(result))
     return 0
@@ -230,8 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("train", help="train UniqueSplat (any variant) with the field's recipe; "
                        "also under torchrun (DistributedDataParallel)")
     p.add_argument("--config", action="append",
-                   help="YAML file (train/configs/); repeat to merge several in order "
-                   "(default: train/configs/synthetic_tiny.yaml)")
+                   help="a YAML file's path, or a packaged config's name (usplat_dr/configs/: "
+                   "synthetic_tiny.yaml, synthetic_tiny_depth.yaml, ...); repeat to merge "
+                   "several in order (default: synthetic_tiny.yaml)")
     p.add_argument("--resume", action="store_true",
                    help="continue from output_dir/checkpoints/last.ckpt when it exists")
     p.add_argument("overrides", nargs="*", metavar="key.sub=value",

@@ -1,20 +1,30 @@
 """Composable YAML configurations with dotted ``key=value`` overrides (the field's Hydra
 habits without Hydra).
 
-A file may list others under ``include:`` (paths relative to it); they are merged first, in
-order, then the file itself, then the command line's overrides. Dictionaries merge key by key;
-anything else replaces. Override values are parsed as YAML (``lr=1e-6``, ``steps=100``,
+The shipped configurations are package data (``usplat_dr/configs/``, read with
+``importlib.resources``, so a wheel install has them). A config is named by a path to a YAML
+file (a user's own) or, when no such file exists, by its name among the packaged ones
+(``synthetic_tiny.yaml``, ``model/tiny.yaml``). A file may list others under ``include:``
+(paths relative to it, else packaged names); they are merged first, in order, then the file
+itself, then the command line's overrides. Dictionaries merge key by key; anything else
+replaces. Override values are parsed as YAML (``lr=1e-6``, ``steps=100``,
 ``model.variant=full``, ``dataset.roots=[a,b]``, ``x=null``).
 
-    cfg = load_config(["train/configs/demo.yaml"], ["optimizer.lr=1e-4"])
+    cfg = load_config(["synthetic_tiny.yaml"], ["optimizer.lr=1e-4"])
 """
 
 import copy
 import os
 import re
-from pathlib import Path
+from importlib.resources import files
+from pathlib import Path, PurePosixPath
 
 import yaml
+
+try:  # Python >= 3.11
+    from importlib.resources.abc import Traversable
+except ImportError:  # Python 3.10
+    from importlib.abc import Traversable
 
 
 class _Loader(yaml.SafeLoader):
@@ -50,25 +60,63 @@ def merge(base: dict, update: dict) -> dict:
     return out
 
 
-def read_file(path: str | os.PathLike, _seen: tuple = ()) -> dict:
-    path = Path(path).resolve()
-    if path in _seen:
-        raise ConfigError(f"config {path} includes itself (through {[str(p) for p in _seen]})")
-    if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
-    with open(path) as f:
-        try:
-            data = parse(f.read()) or {}
-        except yaml.YAMLError as e:
-            raise ConfigError(f"config file {path} is not valid YAML: {e}") from e
+def packaged_configs() -> Traversable:
+    """The folder of the shipped configurations (``usplat_dr/configs/``, package data)."""
+    return files("usplat_dr") / "configs"
+
+
+def packaged_names() -> list[str]:
+    """The packaged configurations' names, e.g. ``synthetic_tiny.yaml``, ``model/tiny.yaml``."""
+    def walk(node: Traversable, prefix: str) -> list[str]:
+        names = []
+        for child in node.iterdir():
+            if child.is_dir():
+                names += walk(child, f"{prefix}{child.name}/")
+            elif child.name.endswith(".yaml"):
+                names.append(prefix + child.name)
+        return names
+    return sorted(walk(packaged_configs(), ""))
+
+
+def find_config(ref: str | os.PathLike, relative_to: Path | Traversable | None = None
+                ) -> Path | Traversable:
+    """The config file ``ref`` names: a path to an existing file (a user's own YAML; relative
+    to ``relative_to``, the including file's folder, when given), else a packaged config's
+    name (``synthetic_tiny.yaml``, ``model/tiny.yaml``)."""
+    path = Path(ref)
+    if relative_to is not None and not path.is_absolute():
+        local = relative_to / str(ref)
+        if local.is_file():
+            return local
+    elif path.is_file():
+        return path
+    if not path.is_absolute():
+        packaged = packaged_configs().joinpath(*PurePosixPath(str(ref)).parts)
+        if packaged.is_file():
+            return packaged
+    raise ConfigError(f"config file {str(ref)!r} does not exist and is not a packaged config; "
+                      f"pass the path of a YAML file or one of {packaged_names()}")
+
+
+def read_file(path: str | os.PathLike | Traversable, _seen: tuple = ()) -> dict:
+    """One config file (a path, a packaged name or a packaged resource) merged over its
+    includes."""
+    source = find_config(path) if isinstance(path, (str, os.PathLike)) else path
+    key = str(source.resolve()) if isinstance(source, Path) else str(source)
+    if key in _seen:
+        raise ConfigError(f"config {key} includes itself (through {list(_seen)})")
+    try:
+        data = parse(source.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config file {key} is not valid YAML: {e}") from e
     if not isinstance(data, dict):
-        raise ConfigError(f"config file {path} must hold a mapping, got {type(data).__name__}")
+        raise ConfigError(f"config file {key} must hold a mapping, got {type(data).__name__}")
     includes = data.pop("include", []) or []
     if isinstance(includes, str):
         includes = [includes]
     out = {}
     for inc in includes:
-        out = merge(out, read_file(path.parent / inc, _seen + (path,)))
+        out = merge(out, read_file(find_config(inc, source.parent), _seen + (key,)))
     return merge(out, data)
 
 
@@ -92,7 +140,8 @@ def apply_override(cfg: dict, override: str) -> dict:
 
 
 def load_config(paths, overrides=()) -> dict:
-    """Merge the files (each with its includes) and apply the overrides."""
+    """Merge the files (each with its includes) and apply the overrides. ``paths``: paths of
+    YAML files or names of packaged configs (``synthetic_tiny.yaml``)."""
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
     cfg = {}

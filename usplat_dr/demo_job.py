@@ -52,8 +52,12 @@ PRESET = "tiny"
 BASE = "tiny_baseline"
 SHIPPED = {"baseline": "tiny_baseline_continued", "agnostic": "tiny_agnostic",
            "full": "tiny_full"}
-#: Where the shipped checkpoints are (the repository's checkpoints/ folder).
-CHECKPOINTS = Path(__file__).parents[1] / "checkpoints"
+#: Where the shipped checkpoints are: package data in a wheel install (usplat_dr/checkpoints,
+#: pyproject.toml maps the repository's checkpoints/ there), else the repository's
+#: checkpoints/ folder (a source checkout or an editable install).
+CHECKPOINTS = next((p for p in (Path(__file__).parent / "checkpoints",
+                                Path(__file__).parents[1] / "checkpoints") if p.is_dir()),
+                   Path(__file__).parents[1] / "checkpoints")
 #: The brief fine-tuning's recipe (the verdict study's, fewer steps).
 FINETUNE_LR = 2e-4
 
@@ -68,10 +72,8 @@ def shipped_checkpoints(root: Path = CHECKPOINTS) -> dict[str, Path]:
     return {e["name"]: root / e["file"] for e in entries}
 
 
-def _config() -> Path:
-    from usplat_dr.training import CONFIG_DIR
-
-    return CONFIG_DIR / "synthetic_tiny_depth.yaml"
+#: The packaged config the demo's runs start from (usplat_dr/configs/).
+CONFIG = "synthetic_tiny_depth.yaml"
 
 
 def training_config(data: Path, out: Path, budget: Budget, variant: str,
@@ -81,11 +83,10 @@ def training_config(data: Path, out: Path, budget: Budget, variant: str,
     from usplat_dr.config import load_config
 
     gap_max = max(4, budget.frames // 3)
-    config = _config()
     start = ([f"model.init_from={init}", f"optimizer.lr={FINETUNE_LR}",
               "optimizer.warm_up_fraction=0.05"] if init else ["optimizer.lr=1e-3"])
     steps = budget.steps if init else budget.scratch_steps
-    return load_config([config] if config.is_file() else [], [
+    return load_config([CONFIG], [
         f"dataset.roots=[{data}]", f"dataset.image_shape=[{budget.size},{budget.size}]",
         f"output_dir={out}", f"model.variant={variant}", f"model.preset={preset}",
         f"train.steps={steps}", f"train.checkpoint_every={max(steps // 4, 1)}",

@@ -28,9 +28,6 @@ from usplat_dr.io import torch_save
 
 log = logging.getLogger(__name__)
 
-#: The shipped configurations (train/configs/ in the repository).
-CONFIG_DIR = Path(__file__).parents[1] / "train" / "configs"
-
 SECTIONS = {"seed", "output_dir", "device", "threads", "model", "dataset", "data_loader",
             "optimizer", "loss", "train", "name"}
 
