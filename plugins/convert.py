@@ -139,11 +139,11 @@ def gaussians_to_ellipsoids(means, scales, rotations_xyzw, opacities, harmonics,
     ``harmonics`` [G, 3, D]. ``sh_basis``: the basis of ``harmonics`` ("mvsplat": the model's,
     converted to 3DGS's; "3dgs": as is). Degree 4 coefficients are dropped (no rasteriser
     evaluates them). See ``model_gaussians_to_ellipsoids`` for a model's output."""
-    import torch
+    import torch  # only for torch tensors: the plugin itself runs on Mitsuba alone
 
     h = torch.as_tensor(_np(harmonics), dtype=torch.float64)
     if sh_basis == "mvsplat":
-        from usplat_dr.ply import sh_to_3dgs
+        from usplat_dr.model.ply import sh_to_3dgs  # loads torch: only for this basis
 
         h = sh_to_3dgs(h)
     elif sh_basis != "3dgs":
@@ -164,9 +164,9 @@ def model_gaussians_to_ellipsoids(gaussians) -> dict:
     """The ``ellipsoids`` dict for one target's Gaussians of a ``UniqueSplatOutput``
     (``out.target(b, n)``, batch 1): the world-frame scales and rotations come from the
     covariances (eigen-decomposition), the SH from MVSplat's basis to 3DGS's."""
-    import torch
+    import torch  # only for torch tensors: the plugin itself runs on Mitsuba alone
 
-    from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz
+    from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz  # torch (see above)
 
     cov = gaussians.covariances[0].detach().double().cpu()
     evals, evecs = torch.linalg.eigh(cov)
@@ -183,7 +183,7 @@ def ellipsoids_to_gaussians(shape) -> dict:
     """torch tensors (no batch) from an ``ellipsoids`` shape: ``means`` [G, 3],
     ``covariances`` [G, 3, 3], ``harmonics`` [G, 3, D] (3DGS basis), ``opacities`` [G];
     what ``usplat_dr.render.rasterize`` takes (with a batch dimension added)."""
-    import torch
+    import torch  # only for torch tensors: the plugin itself runs on Mitsuba alone
 
     with dr.suspend_grad():
         g = ellipsoids_as_gaussians([shape])

@@ -6,8 +6,8 @@ perspective sensor.
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from usplat_dr.plugins.convert import ellipsoids_as_gaussians, sensor_camera
 
+from usplat_dr.plugins.convert import ellipsoids_as_gaussians, sensor_camera
 from usplat_dr.render.settings import RasterSettings
 
 DOC = r"""
@@ -87,7 +87,7 @@ def _make_class():
 
         # ---- the image ----
         def _image(self, scene, sensor):
-            from usplat_dr.render.pipeline import rasterize_drjit
+            from usplat_dr.render.pipeline import rasterize_drjit  # on first render (start-up)
 
             if isinstance(sensor, int):
                 sensor = scene.sensors()[sensor]

@@ -1,16 +1,9 @@
 """Shared fixtures: the ``backend`` fixture runs LLVM always and CUDA where a GPU is present."""
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
 import usplat_dr  # noqa: F401  (chooses libLLVM before anything imports drjit)
-
-sys.path.insert(0, str(Path(__file__).parent / "render"))
-sys.path.insert(0, str(Path(__file__).parent / "data"))
-sys.path.insert(0, str(Path(__file__).parent / "fixtures"))  # deterministic_weights
 
 
 def _cuda_available() -> bool:

@@ -31,7 +31,7 @@ def old_group_grad_norms(trainer) -> dict:
 def timed_step(trainer, batch, old: bool) -> dict:
     import torch
 
-    from usplat_dr.training import scene_args
+    from usplat_dr.data.types import model_inputs
 
     t, c = {}, {}
 
@@ -41,7 +41,7 @@ def timed_step(trainer, batch, old: bool) -> dict:
 
     w0, p0 = time.perf_counter(), time.process_time()
     trainer.model.train()
-    args = scene_args(batch, trainer.device)
+    args = model_inputs(batch, trainer.device)
     trainer.optimizer.zero_grad(set_to_none=True)
     w, p = mark("data", w0, p0)
     out = trainer.model(*args, global_step=trainer.step)

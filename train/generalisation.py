@@ -56,8 +56,9 @@ def main(argv=None) -> int:
     import torch
 
     from usplat_dr.config import load_config
-    from usplat_dr.evaluation import evaluate, load_model, synthetic_indices
+    from usplat_dr.evaluation import evaluate, synthetic_indices
     from usplat_dr.training import train
+    from usplat_dr.training.checkpoints import load_model
 
     rows = []
     for n in args.scenes:

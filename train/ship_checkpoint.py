@@ -19,9 +19,9 @@ import usplat_dr  # noqa: F401  (libLLVM before drjit)
 from usplat_dr import portable
 
 portable.enable()  # AVX2 code paths, as the usplat command (before torch is imported)
-from usplat_dr.evaluation import evaluate, load_model, synthetic_indices  # noqa: E402
+from usplat_dr.evaluation import evaluate, synthetic_indices  # noqa: E402
 from usplat_dr.io import write_json  # noqa: E402
-from usplat_dr.training import export_weights  # noqa: E402
+from usplat_dr.training.checkpoints import export_weights, load_model  # noqa: E402
 
 ROOT = Path(__file__).parents[1] / "checkpoints"
 #: Float16 storage is accepted when it moves the held-out PSNR by at most this much.

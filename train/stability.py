@@ -14,8 +14,9 @@ import json
 import logging
 from pathlib import Path
 
-from usplat_dr.demo_job import BUDGETS, _curves, stability, training_config
 from usplat_dr.io import write_json
+from usplat_dr.jobs.budgets import BUDGETS, training_config
+from usplat_dr.jobs.report import curves, stability
 from usplat_dr.training import train
 
 
@@ -40,7 +41,7 @@ def main() -> None:
     train(cfg, resume=True)
     summary = stability(run)
     write_json(Path(args.out) / "stability.json", summary)
-    _curves({args.variant: run}, Path(args.out) / "stability.png")
+    curves({args.variant: run}, Path(args.out) / "stability.png")
     print(json.dumps(summary, indent=1))
     print(f"wrote {args.out}/stability.json and stability.png")
 

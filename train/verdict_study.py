@@ -1,7 +1,7 @@
 """The view-conditioning verdict, multi-seed (the paper's protocol): from one trained (a),
 fine-tune (a) on (the control), (b) and (c) for the same steps with each seed, evaluate all
 of them on the same held-out scenes, and compare paired per-scene differences with bootstrap
-95% intervals over scenes and seeds (``usplat_dr.verdict``).
+95% intervals over scenes and seeds (``usplat_dr.evaluation.verdict``).
 
     python train/verdict_study.py --init checkpoints/tiny_baseline.pt \
         --data outputs/big/train480 --eval-data outputs/big/test2000 \
@@ -42,8 +42,9 @@ def run_one(args, variant: str, seed: int) -> dict:
     import torch
 
     from usplat_dr.config import load_config
-    from usplat_dr.evaluation import evaluate, load_model, synthetic_indices
+    from usplat_dr.evaluation import evaluate, synthetic_indices
     from usplat_dr.training import train
+    from usplat_dr.training.checkpoints import load_model
 
     run = Path(args.out) / run_name(variant, seed)
     steps = round(args.steps * args.wall_ratio) if variant == "baseline_wall" else args.steps
@@ -129,8 +130,8 @@ def main(argv=None) -> int:
         codes = list(pool.map(launch, jobs))
     if any(codes):
         return 1
+    from usplat_dr.evaluation.verdict import as_dicts, chart, compare, table
     from usplat_dr.io import write_json
-    from usplat_dr.verdict import as_dicts, chart, compare, table
 
     def csvs(v):
         return [out / run_name(v, s) / "eval" / "per_scene.csv" for s in args.seeds]

@@ -30,7 +30,7 @@ def require_llvm() -> types.ModuleType:
             f"Dr.Jit loaded libLLVM {major}, which crashes the process in min/max kernels "
             f"(drjit was probably imported before usplat_dr). {_llvm.INSTALL_HINT}"
         )
-    import drjit.llvm.ad
+    import drjit.llvm.ad  # after the libLLVM checks above
 
     portable.pin_drjit()  # before the first kernel compiles (a no-op unless USPLAT_PORTABLE)
     return drjit.llvm.ad
@@ -43,7 +43,7 @@ def require_cuda() -> types.ModuleType:
             "Dr.Jit's CUDA backend is unavailable (no NVIDIA GPU or driver found); "
             "use CPU tensors for the LLVM backend"
         )
-    import drjit.cuda.ad
+    import drjit.cuda.ad  # only once a CUDA device is known to exist
 
     return drjit.cuda.ad
 

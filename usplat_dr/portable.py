@@ -60,7 +60,7 @@ def _host_has_avx2_fma() -> bool:
 
 
 def _core():
-    import drjit as dr
+    import drjit as dr  # not at import: usplat_dr/__init__ imports this before libLLVM is set
 
     return ctypes.CDLL(str(Path(dr.__file__).parent / "libdrjit-core.so"))
 

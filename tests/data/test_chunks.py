@@ -6,8 +6,8 @@ import logging
 import numpy as np
 import pytest
 import torch
-from fakes import fake_scene, random_poses, w2c_rows, write_plain_dataset
 
+from tests.data.fakes import fake_scene, random_poses, w2c_rows, write_plain_dataset
 from usplat_dr.data import (
     BadSceneError,
     ChunkDataset,

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from fakes import fake_scene, write_plain_dataset
 from torch.utils.data import DataLoader
 
+from tests.data.fakes import fake_scene, write_plain_dataset
 from usplat_dr.data import (
     ChunkDataset,
     StepTracker,

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from deterministic_weights import deterministic_state_dict
 
+from tests.fixtures.deterministic_weights import deterministic_state_dict
 from usplat_dr.model import PrimaryNetwork
 
 FIXTURES = Path(__file__).parents[1] / "fixtures"

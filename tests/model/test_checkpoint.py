@@ -2,8 +2,8 @@
 
 import pytest
 import torch
-from conftest import MANIFEST, inputs
 
+from tests.model.conftest import MANIFEST, inputs
 from usplat_dr.model import (
     CheckpointMismatchError,
     PrimaryNetwork,

@@ -11,9 +11,9 @@ count, SH layout) gives 1e-2 or more.
 
 import pytest
 import torch
-from conftest import inputs
-from deterministic_weights import fingerprint
 
+from tests.fixtures.deterministic_weights import fingerprint
+from tests.model.conftest import inputs
 from usplat_dr.model.encoder.cost_volume import pixel_intrinsics, relative_poses
 from usplat_dr.model.gaussian_adapter import GaussianAdapter
 from usplat_dr.model.sh_rotation import rotate_sh

@@ -3,8 +3,8 @@ Gaussians through the rasteriser."""
 
 import pytest
 import torch
-from conftest import two_view_cameras
 
+from tests.model.conftest import two_view_cameras
 from usplat_dr.model import PrimaryNetwork, PrimaryNetworkCfg
 from usplat_dr.render import RasterSettings, rasterize
 

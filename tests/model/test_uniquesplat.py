@@ -7,8 +7,8 @@ import math
 
 import pytest
 import torch
-from conftest import two_view_cameras
 
+from tests.model.conftest import two_view_cameras
 from usplat_dr.model import CheckpointMismatchError, PrimaryNetwork, UniqueSplat
 from usplat_dr.model.hypernet.resnet import ResNet18
 from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, UniqueSplatCfg

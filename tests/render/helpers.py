@@ -1,8 +1,8 @@
 """Helpers shared by the rasteriser tests."""
 
 import torch
-from reference import render_ref
 
+from tests.render.reference import render_ref
 from usplat_dr.render import rasterize
 from usplat_dr.render.scenes import GaussianScene
 

@@ -5,8 +5,8 @@ import inspect
 import drjit as dr
 import pytest
 import torch
-from helpers import gradients
 
+from tests.render.helpers import gradients
 from usplat_dr.render import RasterSettings, rasterize, rasterize_drjit
 from usplat_dr.render.scenes import pixel_aligned_scene, random_scene
 

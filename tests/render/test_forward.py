@@ -10,8 +10,8 @@ import math
 
 import pytest
 import torch
-from helpers import max_err, render_both
 
+from tests.render.helpers import max_err, render_both
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.scenes import (
     GaussianScene,

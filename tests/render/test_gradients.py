@@ -9,9 +9,9 @@ of 1e-2 or more.
 
 import pytest
 import torch
-from helpers import gradients, weighted_loss, with_grad
-from reference import render_ref
 
+from tests.render.helpers import gradients, weighted_loss, with_grad
+from tests.render.reference import render_ref
 from usplat_dr.geometry.cameras import normalized_intrinsics
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.scenes import (

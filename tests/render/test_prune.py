@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from reference import project_ref, render_ref
 
+from tests.render.reference import project_ref, render_ref
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.prune import PruneSettings, prune, screen_footprint
 

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from jaxtyping import Float, UInt8
+from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
 from usplat_dr.io import torch_save, write_json
@@ -113,8 +114,6 @@ def matrices_to_cameras(
 def encode_image(image: UInt8[np.ndarray, "h w 3"], fmt: str = "png",
                  quality: int = 95) -> UInt8[Tensor, " nbytes"]:
     """Encode an [H, W, 3] uint8 image as PNG or JPEG bytes in a uint8 tensor (the chunk form)."""
-    from PIL import Image
-
     if fmt not in ("png", "jpeg"):
         raise ValueError(f"fmt must be 'png' or 'jpeg', got {fmt!r}")
     buf = io.BytesIO()
@@ -128,8 +127,6 @@ def decode_image(data: Tensor) -> UInt8[Tensor, "3 h w"]:
     """Decode one encoded image (uint8 1-D tensor) to uint8 [3, H, W] RGB.
 
     Raises ``BadSceneError`` when the bytes are not a readable image."""
-    from PIL import Image, UnidentifiedImageError
-
     if not isinstance(data, Tensor) or data.dtype != torch.uint8 or data.ndim != 1:
         raise BadSceneError("an image is not a uint8 1-D tensor of encoded bytes")
     try:

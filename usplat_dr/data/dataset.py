@@ -14,6 +14,7 @@ Expected skips (too few frames for the sampler, no evaluation-index entry, FOV o
 """
 
 import collections
+import dataclasses
 import hashlib
 import logging
 from dataclasses import dataclass, field
@@ -23,6 +24,7 @@ import torch
 import torch.distributed
 from torch.utils.data import IterableDataset, get_worker_info
 
+from usplat_dr.config import ConfigError, check_keys
 from usplat_dr.data.chunks import (
     BadChunkError,
     BadSceneError,
@@ -36,8 +38,10 @@ from usplat_dr.data.chunks import (
 from usplat_dr.data.shims import augment_flip, crop_views, fov_degrees, normalize_baseline
 from usplat_dr.data.view_sampler import (
     StepTracker,
+    ViewSamplerAllCfg,
     ViewSamplerBoundedCfg,
     ViewSamplerCfg,
+    ViewSamplerEvaluationCfg,
     ViewSamplingError,
     get_view_sampler,
 )
@@ -267,3 +271,31 @@ class ChunkDataset(IterableDataset):
             example[side] = v
         return example
 
+
+def dataset_from_section(dcfg: dict, stage: str, step_tracker=None, rank: int | None = None,
+                         world_size: int | None = None):
+    """The dataset a config's ``dataset`` section describes (``name``, ``roots``,
+    ``image_shape``, ``view_sampler``, ``overrides``, ``evaluation_index``) for ``stage``;
+    outside training, ``evaluation_index`` selects the evaluation sampler."""
+    check_keys(dcfg, {"name", "roots", "image_shape", "view_sampler", "overrides",
+                      "evaluation_index"}, "dataset")
+    if not dcfg.get("roots"):
+        raise ConfigError("dataset.roots must name at least one dataset folder (e.g. "
+                          "dataset.roots=[datasets/re10k]); make a synthetic one with "
+                          "`usplat synth --out DIR`")
+    kinds = {"bounded": ViewSamplerBoundedCfg, "evaluation": ViewSamplerEvaluationCfg,
+             "all": ViewSamplerAllCfg}
+    vs = dict(dcfg.get("view_sampler") or {"name": "bounded"})
+    if stage != "train" and dcfg.get("evaluation_index"):
+        vs = {"name": "evaluation", "index_path": dcfg["evaluation_index"]}
+    name = vs.get("name", "bounded")
+    if name not in kinds:
+        raise ConfigError(f"dataset.view_sampler.name must be one of {sorted(kinds)}")
+    fields = {f.name for f in dataclasses.fields(kinds[name])}
+    check_keys(vs, fields, "dataset.view_sampler")
+    sampler = kinds[name](**vs)
+    over = dict(dcfg.get("overrides") or {})
+    if "image_shape" in dcfg:
+        over["image_shape"] = tuple(dcfg["image_shape"])
+    cfg = dataset_cfg(dcfg.get("name", "re10k"), dcfg["roots"], view_sampler=sampler, **over)
+    return ChunkDataset(cfg, stage, step_tracker, rank=rank, world_size=world_size)

@@ -11,6 +11,7 @@ import math
 import numpy as np
 import torch
 from jaxtyping import Float
+from PIL import Image
 from torch import Tensor
 
 
@@ -39,8 +40,6 @@ def fov_degrees(intrinsics: Float[Tensor, "*batch 3 3"]) -> Float[Tensor, "*batc
 
 
 def _resize(image: Tensor, shape: tuple[int, int]) -> Tensor:
-    from PIL import Image
-
     h, w = shape
     if image.dtype == torch.uint8:  # [3, H, W]
         im = Image.fromarray(image.permute(1, 2, 0).numpy())

@@ -17,6 +17,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.model.checkpoint import check_state_dict, extract_state_dict, read_checkpoint
 from usplat_dr.model.encoder.primary import (
     PrimaryNetwork,
     PrimaryNetworkCfg,
@@ -234,12 +235,6 @@ class UniqueSplat(nn.Module):
         primary network strictly; for the agnostic and full variants the target layers'
         weights become W (H_a's output bias, with zero last-layer weight), so that the
         untrained model renders what MVSplat renders."""
-        from usplat_dr.model.checkpoint import (
-            check_state_dict,
-            extract_state_dict,
-            read_checkpoint,
-        )
-
         sd = extract_state_dict(read_checkpoint(checkpoint, map_location, trust_checkpoint))
         if self.agnostic is not None:
             keys = {f"depth_predictor.{s.name}.{p}": shape for s in self.specs
@@ -380,7 +375,7 @@ class UniqueSplat(nn.Module):
         """Render ``out``'s Gaussians for its targets at ``image_shape`` (any size: the
         intrinsics are normalised) into ``out.color/alpha/depth``; ``forward(render=True)``
         calls it at the context images' size. ``prune``: a ``PruneSettings`` or ``None``."""
-        from usplat_dr.render import RasterSettings, rasterize
+        from usplat_dr.render import RasterSettings, rasterize  # Dr.Jit on the first render
 
         b, n = target_near.shape
         g = out.gaussians

@@ -12,11 +12,11 @@ __all__ = ["RasterSettings", "RenderOutput", "RenderOutputDr", "rasterize", "ras
 
 def __getattr__(name):
     if name in ("rasterize", "RenderOutput"):
-        from usplat_dr.render import bridge
+        from usplat_dr.render import bridge  # torch + drjit on first use (see above)
 
         return getattr(bridge, name)
     if name in ("rasterize_drjit", "RenderOutputDr"):
-        from usplat_dr.render import pipeline as core
+        from usplat_dr.render import pipeline as core  # drjit on first use (see above)
 
         return getattr(core, name)
     raise AttributeError(f"module 'usplat_dr.render' has no attribute {name!r}")

@@ -65,7 +65,7 @@ def eval_sh_color(coeffs: list, x, y, z, degree: int, basis: str = "3dgs") -> li
     the reference ignores degree 4.
     Returns ``[r, g, b]`` (``Float``).
     """
-    import drjit as dr
+    import drjit as dr  # here only: sh_basis also serves NumPy and torch without Dr.Jit
 
     values = sh_basis(x, y, z, degree, basis)
     colors = []

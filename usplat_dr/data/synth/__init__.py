@@ -14,17 +14,21 @@ camera-space z, +inf on a miss), ``materials`` (uint8 [V, H, W]: 0 miss, 1 textu
 
 import hashlib
 import logging
+import multiprocessing
 import os
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras
 from usplat_dr.data.synth.render import render_spec
 from usplat_dr.data.synth.scenes import KINDS, make_spec
 from usplat_dr.data.synth.splits import SPLITS, scene_splits
 from usplat_dr.io import write_json
+from usplat_dr.io.images import colorize_depth, save_png
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +60,6 @@ def scene_record(key: str, spec: dict, images: np.ndarray, depths: np.ndarray,
 
 
 def _preview(path: Path, images: np.ndarray, depths: np.ndarray) -> None:
-    from usplat_dr.images import colorize_depth, save_png
-
     picks = np.linspace(0, len(images) - 1, min(6, len(images))).round().astype(int)
     top = np.concatenate([images[i] / 255.0 for i in picks], 1)
     bottom = np.concatenate([colorize_depth(np.where(np.isfinite(depths[i]), depths[i], 0.0),
@@ -80,9 +82,6 @@ def _rendered(jobs_list: list[tuple], jobs: int):
     if jobs <= 1 or len(jobs_list) <= 1:
         yield from map(_render_scene, jobs_list)
         return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
     # spawn: a forked Dr.Jit/Mitsuba runtime (threads, JIT state) is not safe to reuse.
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         yield from pool.map(_render_scene, jobs_list)
@@ -120,8 +119,6 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     measurements = {}
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=scenes, desc="usplat synth", unit="scene")
     seeds = [scene_seed(seed, i) for i in range(scenes)]
     specs = [make_spec(kinds[i % len(kinds)], s, frames) for i, s in enumerate(seeds)]

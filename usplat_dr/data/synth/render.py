@@ -25,14 +25,14 @@ _VARIANTS = {"llvm": "llvm_ad_rgb", "cuda": "cuda_ad_rgb"}
 
 def set_variant(backend: str = "llvm"):
     """Select Mitsuba's variant for ``backend`` ('llvm' or 'cuda') and return the module."""
-    import mitsuba as mi
+    import mitsuba as mi  # on first use, not at import (start-up time)
 
     import usplat_dr  # noqa: F401  (libLLVM before Mitsuba loads Dr.Jit)
 
     if backend not in _VARIANTS:
         raise ValueError(f"backend must be 'llvm' or 'cuda', got {backend!r}")
     if backend == "llvm":
-        from usplat_dr.backend import require_llvm
+        from usplat_dr.backend import require_llvm  # loads drjit: not at import (start-up)
 
         require_llvm()
     if mi.variant() != _VARIANTS[backend]:
@@ -148,7 +148,7 @@ def trace_depth(mi, scene, c2w: np.ndarray, intrinsics: np.ndarray,
                 resolution: tuple[int, int], shape_codes: dict[str, int] | None = None):
     """Camera-space z at every pixel centre (``+inf`` on a miss) and, with ``shape_codes``
     (shape id -> material code), the material code of the surface seen there."""
-    import drjit as dr
+    import drjit as dr  # loaded with Mitsuba, not at import (start-up time)
 
     h, w = resolution
     d_cam = pixel_directions(intrinsics, resolution).reshape(-1, 3)

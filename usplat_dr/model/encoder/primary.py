@@ -8,6 +8,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.model.checkpoint import load_mvsplat_state_dict
 from usplat_dr.model.encoder.backbone import BackboneMultiview
 from usplat_dr.model.encoder.depth_predictor import DepthOutputs, DepthPredictorMultiView
 from usplat_dr.model.gaussian_adapter import GaussianAdapter
@@ -134,8 +135,6 @@ class PrimaryNetwork(nn.Module):
                                 map_location="cpu") -> "PrimaryNetwork":
         """Build the network and load an official MVSplat checkpoint (a path to a Lightning
         ``.ckpt``, such a dict, or a bare state dict, with or without ``encoder.``) strictly."""
-        from usplat_dr.model.checkpoint import load_mvsplat_state_dict
-
         net = cls(config)
         load_mvsplat_state_dict(net, checkpoint, map_location=map_location)
         return net

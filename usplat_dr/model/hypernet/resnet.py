@@ -14,6 +14,8 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.model.checkpoint import check_state_dict
+
 log = logging.getLogger(__name__)
 
 
@@ -107,8 +109,6 @@ class ResNet18(nn.Module):
                         "resnet18-f37072fd.pth, for the paper's ImageNet-pretrained backbone)",
                         path)
             return False
-        from usplat_dr.model.checkpoint import check_state_dict
-
         sd = torch.load(path, map_location="cpu", weights_only=True)
         absent = {"fc"} if self.fc is None else set()
         absent |= {f"layer{i + 1}" for i in range(self.stages, 4)}

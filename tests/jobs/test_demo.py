@@ -1,0 +1,112 @@
+"""``usplat demo --quick`` end to end, run from a wheel install: the package built as a wheel
+(not editable), installed into a folder of its own, and run from another directory by a Python
+that cannot see the repository; then the report, the CLI's video and PLY export of its
+fine-tuned model, and ``usplat bench`` reusing its runs."""
+
+import csv
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+from usplat_dr.jobs.budgets import SHIPPED
+
+ROOT = Path(__file__).parents[2]
+
+
+@pytest.fixture(scope="module")
+def wheel_demo(tmp_path_factory) -> Path:
+    """The output folder of ``usplat demo --quick`` run from a wheel install.
+
+    ``python -S`` skips site-packages' ``.pth`` files, so the editable install of the test
+    environment (a finder that maps ``usplat_dr`` to this repository) is not active: the
+    dependencies come from the test environment's site-packages, given on ``PYTHONPATH`` after
+    the wheel's folder, and ``usplat_dr`` can only come from the wheel."""
+    tmp = tmp_path_factory.mktemp("wheel")
+    # Built from a copy: setuptools reuses a source tree's build/ folder, where modules moved
+    # or deleted since an earlier build would linger and hide a missing package.
+    source = tmp / "source"
+    shutil.copytree(ROOT, source, symlinks=True, ignore=shutil.ignore_patterns(
+        ".git", ".venv", "build", "dist", "*.egg-info", "outputs", "__pycache__", ".*_cache"))
+    run = dict(check=True, capture_output=True, text=True)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                    "--disable-pip-version-check", "-w", str(tmp / "dist"), str(source)], **run)
+    wheel, = (tmp / "dist").glob("usplat_dr-*.whl")
+    site = tmp / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--target", str(site),
+                    "--disable-pip-version-check", str(wheel)], **run)
+    deps = sorted({sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]})
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), *deps])}
+    elsewhere = tmp / "elsewhere"  # not the repository: nothing is read relative to it
+    elsewhere.mkdir()
+    out = tmp / "demo"
+    # the console script the wheel installs (`usplat`), run by this Python without site
+    proc = subprocess.run([sys.executable, "-S", str(site / "bin" / "usplat"), "demo",
+                           "--quick", "--out", str(out)], cwd=elsewhere, env=env,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    where = subprocess.run([sys.executable, "-S", "-c",
+                            "import usplat_dr; print(usplat_dr.__file__)"],
+                           cwd=elsewhere, env=env, **run).stdout.strip()
+    assert Path(where) == site / "usplat_dr" / "__init__.py"
+    return out
+
+
+@pytest.mark.slow
+def test_demo_quick_end_to_end(wheel_demo):
+    tmp_path = wheel_demo
+    text = (tmp_path / "report.md").read_text()
+    assert "| (a) primary network `tiny_baseline_continued`" in text
+    assert "| (c) UniqueSplat `tiny_full`" in text
+    assert "## Verdict on view conditioning" in text and "| standard | psnr | (c) - (a) |" in text
+    assert (tmp_path / "training_curves.png").is_file() and (tmp_path / "verdict.png").is_file()
+    for variant in SHIPPED:
+        s = json.loads((tmp_path / f"eval_shipped_{variant}" / "summary.json").read_text())
+        assert s["variant"] == variant and math.isfinite(s["splits"]["standard"]["psnr"])
+    for variant in ("baseline", "full"):  # the brief fine-tuning from the shipped (a)
+        assert (tmp_path / f"train_{variant}" / "checkpoints" / "last.ckpt").is_file()
+    assert "sha256" in text and "drjit" in text  # where the numbers came from
+    images = [line for line in text.splitlines() if line.startswith("![")]
+    assert all((tmp_path / line.split("(")[1].rstrip(")")).is_file() for line in images)
+
+    # the fine-tuned (c) model's video and PLY export through the CLI
+    from usplat_dr.cli import main
+
+    ckpt = str(tmp_path / "train_full" / "checkpoints" / "last.ckpt")
+    common = ["--checkpoint", ckpt, "--data", str(tmp_path / "data"), "--image-shape", "32",
+              "32"]
+    assert main(["-q", "render", *common, "--frames", "6", "--out",
+                 str(tmp_path / "video")]) == 0
+    assert list(tmp_path.glob("video.*"))
+    assert main(["-q", "export-ply", *common, "--target", "1", "--out",
+                 str(tmp_path / "g.ply")]) == 0
+    from usplat_dr.model.ply import read_ply
+
+    assert read_ply(tmp_path / "g.ply")["means"].shape == (2 * 32 * 32, 3)
+
+    # the report's stress, bench and stability sections
+    assert "### Worst cases" in text and "## Speed against accuracy" in text
+    assert "view-specific H_s" in text  # gradient norms of the hypernetwork branches
+    assert "Warning" not in text
+    with open(tmp_path / "bench_demo" / "bench.csv") as f:
+        rows = list(csv.DictReader(f))
+    by = {(r["config"], r["prune"], r["render_size"]): r for r in rows}
+    assert len(by) == len(rows) == 2 * (6 + 1)  # 2 models x (6 budgets at 32 px + 16 px)
+    for config in ("tiny (a)", "tiny (c)"):
+        # exact culling: same PSNR (float32 summation order only)
+        assert abs(float(by[(config, "cull", "32")]["psnr_change_db"])) < 1e-3
+        assert float(by[(config, "keep25%", "32")]["kept_fraction"]) <= 0.25 + 1e-6
+        assert float(by[(config, "cull", "32")]["gaussians_per_view"]) <= 2 * 32 * 32
+
+    # `usplat bench` reuses the demo's trained runs (same folder) and adds nothing to train
+    assert main(["-q", "bench", "--quick", "--out", str(tmp_path), "--configs",
+                 "tiny:a,tiny:c", "--prunes", "all,cull", "--render-sizes", "32"]) == 0
+    assert (tmp_path / "bench" / "bench.png").is_file()
+    summary = json.loads((tmp_path / "bench" / "summary.json").read_text())
+    assert summary["pruning"]["cull"]["safe"]

@@ -1,0 +1,64 @@
+"""The shipped checkpoints: every manifest entry's file exists, matches its sha256, stays
+within the size budget, loads with weights_only (plain data, nothing executed) and renders;
+(b) and (c) name the (a) they were fine-tuned from."""
+
+import hashlib
+import json
+import logging
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from usplat_dr.model import UniqueSplat
+from usplat_dr.training.checkpoints import load_model
+
+ROOT = Path(__file__).parents[2] / "checkpoints"
+MANIFEST = json.loads((ROOT / "manifest.json").read_text())
+KEYS = {"name", "preset", "variant", "file", "sha256", "train_command", "data", "steps",
+        "metrics"}
+#: The issue's budget for shipped weights.
+MAX_BYTES = 25 * 10**6
+
+
+@pytest.fixture(autouse=True)
+def _quiet_resnet(caplog):
+    caplog.set_level(logging.ERROR, logger="usplat_dr.model.hypernet.resnet")
+
+
+def test_manifest_lists_the_required_models_within_budget():
+    names = {e["name"] for e in MANIFEST}
+    assert {"tiny_baseline", "tiny_full"} <= names
+    assert all(KEYS <= set(e) for e in MANIFEST), [KEYS - set(e) for e in MANIFEST]
+    assert sum((ROOT / e["file"]).stat().st_size for e in MANIFEST) <= MAX_BYTES
+    by = {e["name"]: e for e in MANIFEST}
+    for e in MANIFEST:
+        if e["variant"] != "baseline" or e.get("init_from"):
+            # fine-tuned by the paper's protocol from the shipped (a)
+            assert Path(e["init_from"]).name == by["tiny_baseline"]["file"], e["name"]
+
+
+@pytest.mark.parametrize("entry", MANIFEST, ids=[e["name"] for e in MANIFEST])
+def test_entry_matches_its_sha256_and_loads(entry):
+    path = ROOT / entry["file"]
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == entry["sha256"]
+    state = torch.load(path, map_location="cpu", weights_only=True)  # plain data only
+    assert "optimizer" not in state and state["format"] == "usplat-weights/1"
+    model, step = load_model(path)
+    assert model.cfg.variant == entry["variant"] and step >= 1
+    reference = UniqueSplat.from_preset(entry["preset"], variant=entry["variant"])
+    assert sum(p.numel() for p in model.parameters()) == sum(
+        p.numel() for p in reference.parameters())
+    # a render on two cameras a short baseline apart: finite, in range
+    g = torch.Generator().manual_seed(0)
+    k = torch.tensor([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1.0]])
+    e = torch.eye(4).repeat(1, 3, 1, 1)
+    e[0, 1, 0, 3], e[0, 2, 0, 3] = 0.2, 0.1
+    images = torch.rand(1, 2, 3, 32, 32, generator=g)
+    with torch.no_grad():
+        out = model(images, k.expand(1, 2, 3, 3), e[:, :2], torch.full((1, 2), 0.5),
+                    torch.full((1, 2), 20.0), k.expand(1, 1, 3, 3), e[:, 2:],
+                    torch.full((1, 1), 0.5), torch.full((1, 1), 20.0))
+    assert torch.isfinite(out.color).all() and out.color.shape == (1, 1, 3, 32, 32)
+    assert math.isfinite(entry["metrics"]["splits"]["standard"]["psnr"])

@@ -1,0 +1,178 @@
+"""The verdict on view conditioning: paired per-scene differences of a variant against the
+baseline (a), over held-out scenes and training seeds, with bootstrap 95% confidence intervals.
+
+Each variant is fine-tuned from the same trained (a) with the same seeds, steps and data as (a)
+continued for those steps (the paper's protocol), and evaluated on the same scenes; so for seed
+s and scene k the difference ``metric[variant][s, k] - metric[baseline][s, k]`` removes what the
+scene and the seed share. The interval resamples scenes and seeds together (a two-level
+bootstrap: seeds with replacement, scenes with replacement, the mean of the resampled table),
+so it covers both sources of variation; with one seed it is the ordinary bootstrap over scenes.
+
+Examples:
+    >>> import numpy as np
+
+from usplat_dr.io import atomic_open
+    >>> d = np.full((3, 50), 0.5)  # every scene and seed 0.5 dB better
+    >>> lo, hi = bootstrap_interval(d, samples=200)
+    >>> round(lo, 6), round(hi, 6)
+    (0.5, 0.5)
+"""
+
+import csv
+import logging
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from usplat_dr.io import atomic_open
+
+log = logging.getLogger(__name__)
+
+#: Metrics compared, and whether higher is better.
+METRICS = {"psnr": True, "ssim": True, "abs_rel": False}
+LABELS = {"baseline": "(a)", "agnostic": "(b)", "full": "(c)"}
+MIN_PAIRS = 5
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """One row of the verdict: ``variant`` - ``baseline`` on ``metric`` over ``split``."""
+
+    split: str
+    metric: str
+    variant: str
+    mean: float  # mean paired difference (variant - baseline)
+    low: float  # 95% bootstrap interval
+    high: float
+    scenes: int
+    seeds: int
+    better_fraction: float  # fraction of (seed, scene) pairs where the variant is better
+
+    @property
+    def verdict(self) -> str:
+        """'better' / 'worse' when the interval excludes 0 (in the metric's good direction),
+        else 'no difference shown'; 'too few scenes' under ``MIN_PAIRS`` paired values (a
+        bootstrap of one or two values has no meaningful interval)."""
+        if self.scenes * self.seeds < MIN_PAIRS:
+            return "too few scenes"
+        good = self.low > 0 if METRICS[self.metric] else self.high < 0
+        bad = self.high < 0 if METRICS[self.metric] else self.low > 0
+        return "better" if good else "worse" if bad else "no difference shown"
+
+
+def bootstrap_interval(diffs: np.ndarray, samples: int = 10_000, seed: int = 0,
+                       level: float = 0.95) -> tuple[float, float]:
+    """Percentile interval of the mean of ``diffs`` [seeds, scenes] under resampling seeds and
+    scenes with replacement (independently); NaN entries (a metric undefined for a scene,
+    e.g. no covered pixel for depth) are left out of each mean."""
+    diffs = np.asarray(diffs, dtype=np.float64)
+    if diffs.ndim != 2 or diffs.size == 0:
+        raise ValueError(f"diffs must be a non-empty [seeds, scenes] array, got {diffs.shape}")
+    rng = np.random.default_rng(seed)
+    s, k = diffs.shape
+    means = np.empty(samples)
+    for start in range(0, samples, 1000):  # blocks: bounded memory for large tables
+        n = min(1000, samples - start)
+        si = rng.integers(0, s, size=(n, s))
+        ki = rng.integers(0, k, size=(n, k))
+        table = diffs[si[:, :, None], ki[:, None, :]].reshape(n, -1)  # [n, s k]
+        counts = (~np.isnan(table)).sum(1)
+        with np.errstate(invalid="ignore"):  # a resample of only NaNs has no mean
+            means[start:start + n] = np.nansum(table, 1) / counts
+    alpha = (1 - level) / 2
+    return float(np.nanquantile(means, alpha)), float(np.nanquantile(means, 1 - alpha))
+
+
+def read_per_scene(path: str | os.PathLike) -> dict[tuple[str, str], dict[str, float]]:
+    """``usplat eval``'s ``per_scene.csv`` as (split, scene) -> metric -> value."""
+    out = {}
+    with open(path) as f:
+        for row in csv.DictReader(f):
+            out[(row["split"], row["scene"])] = {
+                m: float(row[m]) if row.get(m) not in (None, "") else float("nan")
+                for m in METRICS}
+    return out
+
+
+def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline",
+            samples: int = 10_000) -> list[Comparison]:
+    """``runs``: variant -> one ``per_scene.csv`` per seed (the same seeds, in the same order,
+    for every variant). Every variant other than ``baseline`` is compared with it, per split
+    and metric, on the (split, scene) pairs all runs evaluated."""
+    if baseline not in runs:
+        raise ValueError(f"runs must include the baseline {baseline!r}, got {sorted(runs)}")
+    tables = {v: [read_per_scene(p) for p in paths] for v, paths in runs.items()}
+    seeds = {len(t) for t in tables.values()}
+    if len(seeds) != 1:
+        raise ValueError(f"every variant needs the same number of seeds, got "
+                         f"{ {v: len(t) for v, t in tables.items()} }")
+    common = set.intersection(*(set(t) for ts in tables.values() for t in ts))
+    splits = sorted({s for s, _ in common}, key=lambda s: (s != "standard", s))
+    rows = []
+    for split in splits:
+        keys = sorted(k for k in common if k[0] == split)
+        for variant, ts in tables.items():
+            if variant == baseline:
+                continue
+            for metric, higher in METRICS.items():
+                d = np.array([[t[k][metric] - b[k][metric] for k in keys]
+                              for t, b in zip(ts, tables[baseline])])
+                if np.isnan(d).all():
+                    continue
+                lo, hi = bootstrap_interval(d, samples)
+                valid = d[~np.isnan(d)]
+                rows.append(Comparison(
+                    split, metric, variant, float(valid.mean()), lo, hi, len(keys), len(ts),
+                    float(((valid > 0) if higher else (valid < 0)).mean())))
+    return rows
+
+
+def table(rows: list[Comparison]) -> str:
+    """The verdict as a Markdown table."""
+    lines = ["| split | metric | difference | mean | 95% interval | scenes x seeds | "
+             "better in | verdict |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r.split} | {r.metric} | {LABELS.get(r.variant, r.variant)} - (a) | "
+            f"{r.mean:+.3f} | [{r.low:+.3f}, {r.high:+.3f}] | {r.scenes} x {r.seeds} | "
+            f"{100 * r.better_fraction:.0f}% | {r.verdict} |")
+    return "\n".join(lines)
+
+
+def chart(rows: list[Comparison], path: str | os.PathLike) -> Path:
+    """Forest plot: per metric a panel, per split and variant the mean difference with its
+    interval; the zero line is "no effect"."""
+    import matplotlib  # only for the chart (start-up time)
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # after choosing the backend
+
+    metrics = [m for m in METRICS if any(r.metric == m for r in rows)]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 0.5 + 0.32 * len(
+        rows) / max(1, len(metrics))), squeeze=False)
+    variants = sorted({r.variant for r in rows})
+    for ax, metric in zip(axes[0], metrics):
+        sel = [r for r in rows if r.metric == metric]
+        labels = []
+        for i, r in enumerate(sel):
+            colour = f"C{variants.index(r.variant)}"
+            ax.errorbar(r.mean, i, xerr=[[r.mean - r.low], [r.high - r.mean]], fmt="o",
+                        color=colour, capsize=3)
+            labels.append(f"{r.split} {LABELS.get(r.variant, r.variant)}")
+        ax.axvline(0, color="k", linewidth=0.8)
+        ax.set_yticks(range(len(sel)), labels, fontsize=7)
+        ax.invert_yaxis()
+        better = "higher is better" if METRICS[metric] else "lower is better"
+        ax.set(xlabel=f"{metric}: variant - (a) ({better})")
+        ax.grid(alpha=0.3, axis="x")
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def as_dicts(rows: list[Comparison]) -> list[dict]:
+    return [{**asdict(r), "verdict": r.verdict} for r in rows]

@@ -1,0 +1,363 @@
+"""``usplat bench``: speed against accuracy, measured in one run on one machine.
+
+Trains (or reuses) each configuration on the demo's synthetic training set (``usplat demo``'s
+data and budget; the demo's own runs are reused), then measures on the held-out scenes of the
+standard split, interleaving configurations scene by scene so that a busy machine slows all of
+them alike:
+
+- time per rendered novel view: (model time for the scene + its targets' pruning and
+  rendering) / number of targets, i.e. the encoder's share amortised over the scene's targets;
+  wall time and process CPU time, median over scenes (the first scene warms kernels up);
+- peak memory of the model's forward pass (CPU: the rise of the process's peak RSS, reset per
+  measurement through ``/proc/self/clear_refs``; CUDA: ``max_memory_allocated``);
+- parameters, Gaussians rendered per view, and accuracy: PSNR, SSIM, depth AbsRel.
+
+Axes: configurations (size preset x variant), Gaussian budgets (``PRUNES``: everything, exact
+culling, merging near-duplicates, keeping the most important fraction) at the training
+resolution, and render resolutions (default pruning). Writes ``bench.csv``, ``bench.png``
+(accuracy against time per view with the Pareto front; accuracy against Gaussians rendered),
+``bench.md`` (the table) and ``summary.json`` (the smallest configuration within 0.3 dB of the
+best, and which pruning settings cost less than 0.05 dB everywhere).
+"""
+
+import argparse
+import csv
+import ctypes
+import json
+import logging
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch.utils.data import default_collate
+from tqdm import tqdm
+
+from usplat_dr.data.dataset import dataset_from_section
+from usplat_dr.data.types import model_inputs
+from usplat_dr.evaluation import depth_metrics, nan_mean, synthetic_indices
+from usplat_dr.evaluation.metrics import psnr, ssim
+from usplat_dr.io import atomic_open, write_json
+from usplat_dr.jobs.arguments import non_negative_int
+from usplat_dr.jobs.budgets import BASE, BUDGETS, ensure_data, shipped_checkpoints, training_config
+from usplat_dr.jobs.report import bench_chart, bench_table
+from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS
+from usplat_dr.render.prune import PruneSettings
+from usplat_dr.training import train
+from usplat_dr.training.checkpoints import load_models
+
+log = logging.getLogger(__name__)
+
+LETTERS = {"baseline": "a", "agnostic": "b", "full": "c"}
+PRUNES: dict[str, PruneSettings | None] = {
+    "all": None,
+    "cull": PruneSettings(),
+    "cull+merge1px": PruneSettings(merge=True),
+    "cull+merge2px": PruneSettings(merge=True, merge_pixels=2.0),
+    "keep50%": PruneSettings(keep_fraction=0.5),
+    "keep25%": PruneSettings(keep_fraction=0.25),
+}
+#: The issue's rules: pruning on by default where it costs < 0.05 dB; the demo's preset is
+#: the smallest configuration within 0.3 dB of the best.
+SAFE_PRUNE_DB = 0.05
+PRESET_WITHIN_DB = 0.3
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    preset: str
+    variant: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.preset} ({LETTERS[self.variant]})"
+
+    def run_dir(self, out: Path) -> Path:
+        # the demo's runs (tiny preset) are train_<variant>: shared
+        name = self.variant if self.preset == "tiny" else f"{self.preset}_{self.variant}"
+        return out / f"train_{name}"
+
+    @classmethod
+    def parse(cls, text: str) -> "BenchConfig":
+        """``preset:variant`` (variant: baseline/agnostic/full or a/b/c)."""
+        preset, _, variant = text.partition(":")
+        variant = {v: k for k, v in LETTERS.items()}.get(variant, variant)
+        if preset not in PRESETS or variant not in LETTERS:
+            raise ValueError(f"--configs: {text!r} is not preset:variant with preset in "
+                             f"{sorted(PRESETS)} and variant in {sorted(LETTERS)} or a/b/c")
+        return cls(preset, variant)
+
+
+#: Variants (a)/(b)/(c) at the tiny size, and the size axis for the method (c): on 2 CPU cores
+#: the paper preset trains at ~1 s a step at 64x64 (small 0.55 s, tiny 0.33 s).
+DEFAULT_CONFIGS = tuple(BenchConfig.parse(c) for c in (
+    "tiny:a", "tiny:b", "tiny:c", "small:c", "paper:c"))
+
+
+class PeakMemory:
+    """Peak memory of a block: CUDA allocator peak, or on Linux the rise of the process's peak
+    RSS (VmHWM, reset by writing 5 to /proc/self/clear_refs) after glibc's ``malloc_trim``
+    has returned freed heap pages (else freed memory is reused without raising RSS and every
+    block after the first reads ~0). ``None`` where unavailable."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.gib = None
+
+    @staticmethod
+    def _status(key: str) -> int | None:
+        try:
+            for line in Path("/proc/self/status").read_text().splitlines():
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) * 1024
+        except OSError:
+            return None
+        return None
+
+    def __enter__(self):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+            self.base = torch.cuda.memory_allocated(self.device)
+        else:
+            try:
+                ctypes.CDLL("libc.so.6").malloc_trim(0)
+            except (OSError, AttributeError):
+                pass
+            try:
+                Path("/proc/self/clear_refs").write_text("5")
+                self.base = self._status("VmRSS")
+            except OSError:
+                self.base = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            self.gib = (torch.cuda.max_memory_allocated(self.device) - self.base) / 2**30
+        elif self.base is not None:
+            peak = self._status("VmHWM")
+            self.gib = None if peak is None else max(peak - self.base, 0) / 2**30
+        return False
+
+
+def train_configs(out: Path, budget: str, configs, seed: int = 0, jobs: int = 0) -> dict:
+    """Train what is missing (a finished run is reused; an interrupted one resumes)."""
+    ensure_data(out, budget, seed, jobs)
+    b = BUDGETS[budget]
+    try:  # the tiny preset fine-tunes from the shipped (a), as the demo does
+        base = shipped_checkpoints().get(BASE)
+    except FileNotFoundError:
+        base = None
+    runs = {}
+    for c in configs:
+        run = c.run_dir(out)
+        log.info("bench: training %s in %s", c.label, run)
+        init = base if c.preset == "tiny" else None
+        train(training_config(out / "data", run, b, c.variant, preset=c.preset, init=init),
+              resume=True)
+        runs[c] = run
+    return runs
+
+
+def _examples(data: Path, model_size: int, render_sizes) -> list[dict]:
+    """Per scene of the standard split: the batch at the model's size and the targets at
+    every render size."""
+    index = synthetic_indices(data, ["standard"])["standard"]
+    sizes = sorted({model_size, *render_sizes})
+    per_size = {}
+    for s in sizes:
+        ds = dataset_from_section({"name": "synth", "roots": [str(data)], "image_shape": [s, s],
+                                  "evaluation_index": index}, "test")
+        per_size[s] = [default_collate([e]) for e in ds]
+    return [{"batch": per_size[model_size][i],
+             "targets": {s: per_size[s][i]["target"] for s in sizes}}
+            for i in range(len(per_size[model_size]))]
+
+
+@torch.no_grad()
+def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes=None,
+            device="cpu", progress: bool = True) -> list[dict]:
+    """One row per (configuration, pruning, render size); see the module docstring."""
+    device = torch.device(device)
+    render_sizes = sorted(set(render_sizes or (model_size // 2, model_size)))
+    prunes = PRUNES if prunes is None else prunes
+    default_label = next((k for k, v in PRUNES.items() if v == DEFAULT_INFERENCE_PRUNE), "cull")
+    settings = [(name, p, model_size) for name, p in prunes.items()]
+    settings += [(default_label, DEFAULT_INFERENCE_PRUNE, s) for s in render_sizes
+                 if s != model_size]
+    examples = _examples(data, model_size, render_sizes)
+    acc = {(c, name, s): {"wall": [], "cpu": [], "psnr": [], "ssim": [], "abs_rel": [],
+                          "gaussians": [], "kept": [], "mem": []}
+           for c in models for name, _, s in settings}
+    bar = None
+    if progress:
+        bar = tqdm(total=len(examples) * len(models), desc="bench", unit="scene",
+                   dynamic_ncols=True)
+    for i, ex in enumerate(examples):
+        inputs = model_inputs(ex["batch"], device)
+        n = inputs.target_intrinsics.shape[1]
+        for c, model in models.items():
+            model.eval()
+            with PeakMemory(device) as mem:
+                w0, c0 = time.perf_counter(), time.process_time()
+                out = model(*inputs, render=False)
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                model_wall, model_cpu = time.perf_counter() - w0, time.process_time() - c0
+            total = len(out.gaussians)
+            for name, prune, size in settings:
+                tgt = ex["targets"][size]
+                w0, c0 = time.perf_counter(), time.process_time()
+                model.render_targets(out, *(tgt[k].to(device) for k in (
+                    "intrinsics", "extrinsics", "near", "far")), (size, size), prune=prune)
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                a = acc[(c, name, size)]
+                a["wall"].append((model_wall + time.perf_counter() - w0) / n)
+                a["cpu"].append((model_cpu + time.process_time() - c0) / n)
+                a["mem"].append(mem.gib)
+                gt = tgt["image"][0].to(device)
+                a["psnr"].append(psnr(out.color[0], gt).mean().item())
+                a["ssim"].append(ssim(out.color[0], gt).mean().item())
+                dm = [depth_metrics(out.depth[0, j].cpu(), out.alpha[0, j].cpu(),
+                                    tgt["depth"][0, j])["abs_rel"] for j in range(n)]
+                a["abs_rel"].append(nan_mean(dm))
+                rendered = out.aux["rendered"].float().mean().item()
+                a["gaussians"].append(rendered)
+                a["kept"].append(rendered / total)
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    rows = []
+    for (c, name, size), a in acc.items():
+        steady = slice(1, None) if len(examples) > 1 else slice(None)
+        mems = [m for m in a["mem"] if m is not None]
+        rows.append({
+            "config": c.label, "preset": c.preset, "variant": c.variant,
+            "parameters": sum(p.numel() for p in models[c].parameters()),
+            "prune": name, "render_size": size,
+            "time_per_view_ms": 1000 * statistics.median(a["wall"][steady]),
+            "cpu_time_per_view_ms": 1000 * statistics.median(a["cpu"][steady]),
+            "peak_memory_mib": 1024 * max(mems) if mems else None,
+            "gaussians_per_view": statistics.mean(a["gaussians"]),
+            "kept_fraction": statistics.mean(a["kept"]),
+            "psnr": statistics.mean(a["psnr"]), "ssim": statistics.mean(a["ssim"]),
+            "abs_rel": nan_mean(a["abs_rel"]), "scenes": len(examples)})
+    for r in rows:  # PSNR change against rendering everything, same model and size
+        base = next((q for q in rows if q["config"] == r["config"] and q["prune"] == "all"
+                     and q["render_size"] == r["render_size"]), None)
+        r["psnr_change_db"] = None if base is None else r["psnr"] - base["psnr"]
+    return rows
+
+
+def choose(rows: list[dict], model_size: int) -> dict:
+    """The issue's two decisions from the measured rows."""
+    base = [r for r in rows if r["render_size"] == model_size and r["prune"] == "all"]
+    best = max(base, key=lambda r: r["psnr"])
+    within = [r for r in base if r["psnr"] >= best["psnr"] - PRESET_WITHIN_DB]
+    smallest = min(within, key=lambda r: r["parameters"])
+    safe = {}
+    for name in {r["prune"] for r in rows if r["prune"] != "all"}:
+        changes = [r["psnr_change_db"] for r in rows
+                   if r["prune"] == name and r["render_size"] == model_size]
+        safe[name] = {"worst_psnr_change_db": min(changes),
+                      "kept_fraction": statistics.mean(
+                          r["kept_fraction"] for r in rows
+                          if r["prune"] == name and r["render_size"] == model_size),
+                      "safe": min(changes) > -SAFE_PRUNE_DB}
+    return {"best": best["config"], "best_psnr": best["psnr"],
+            "smallest_within_0.3dB": smallest["config"], "its_psnr": smallest["psnr"],
+            "its_parameters": smallest["parameters"], "pruning": safe}
+
+
+FIELDS = ["config", "preset", "variant", "parameters", "prune", "render_size",
+          "time_per_view_ms", "cpu_time_per_view_ms", "peak_memory_mib", "gaussians_per_view",
+          "kept_fraction", "psnr", "psnr_change_db", "ssim", "abs_rel", "scenes"]
+
+
+def write_results(rows: list[dict], model_size: int, out: Path) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_open(out / "bench.csv", "w") as f:
+        w = csv.DictWriter(f, fieldnames=FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    bench_chart(rows, model_size, out / "bench.png")
+    decision = choose(rows, model_size)
+    write_json(out / "summary.json", decision)
+    with atomic_open(out / "bench.md", "w") as f:
+        f.write(bench_table(rows) + "\n")
+    return decision
+
+
+def run_bench(out: str | Path = "outputs/demo", budget: str = "full", configs=DEFAULT_CONFIGS,
+              render_sizes=None, prunes=None, device: str = "cpu", seed: int = 0,
+              jobs: int = 0) -> dict:
+    """Train what is missing, measure, write ``out/bench/``; returns the decisions."""
+    if budget not in BUDGETS:
+        raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {budget!r}")
+    out = Path(out)
+    size = BUDGETS[budget].size
+    if render_sizes and max(render_sizes) > size:
+        raise ValueError(f"render sizes {render_sizes} exceed the data's {size}x{size} (the "
+                         f"ground truth would be upsampled); use sizes <= {size}")
+    runs = train_configs(out, budget, configs, seed, jobs)
+    models = load_models(runs, device)
+    rows = measure(models, out / "data", size, render_sizes, prunes, device)
+    decision = write_results(rows, size, out / "bench")
+    print(bench_table(rows))
+    print(json.dumps(decision, indent=1))
+    print(f"wrote {out / 'bench'} (bench.csv, bench.png, bench.md, summary.json)")
+    return decision
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", default="outputs/demo", help="the demo folder (its data and runs "
+                   "are shared)")
+    p.add_argument("--configs", type=configs_argument, default=DEFAULT_CONFIGS,
+                   help="comma-separated preset:variant, e.g. tiny:a,tiny:c,small:c (default: "
+                   "tiny a/b/c, small c, paper c)")
+    p.add_argument("--prunes", type=prunes_argument, default=PRUNES,
+                   help="comma-separated pruning settings (default: all, cull, cull+merge1px, "
+                   "cull+merge2px, keep50%%, keep25%%)")
+    p.add_argument("--render-sizes", type=sizes_argument, default=None,
+                   help="comma-separated render sizes <= the data's (default: half and full)")
+    p.add_argument("--quick", action="store_true", help="the demo's quick budget (CI)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--jobs", type=non_negative_int, default=0,
+                   help="Mitsuba worker processes (0: auto)")
+
+
+def configs_argument(text: str) -> tuple[BenchConfig, ...]:
+    """``--configs``: comma-separated ``preset:variant``."""
+    try:
+        return tuple(BenchConfig.parse(c) for c in text.split(","))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from e
+
+
+def prunes_argument(text: str) -> dict:
+    """``--prunes``: comma-separated names of ``PRUNES``."""
+    unknown = sorted(set(text.split(",")) - set(PRUNES))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown {unknown}; choose from {list(PRUNES)}")
+    return {k: PRUNES[k] for k in text.split(",")}
+
+
+def sizes_argument(text: str) -> list[int]:
+    """``--render-sizes``: comma-separated positive ints."""
+    try:
+        sizes = [int(s) for s in text.split(",")]
+    except ValueError:
+        sizes = []
+    if not sizes or min(sizes) < 1:
+        raise argparse.ArgumentTypeError(f"must be comma-separated integers >= 1, got {text!r}")
+    return sizes
+
+
+def run(args: argparse.Namespace) -> int:
+    run_bench(args.out, "quick" if args.quick else "full", args.configs, args.render_sizes,
+              args.prunes, device=args.device, jobs=args.jobs)
+    return 0

@@ -1,0 +1,43 @@
+"""``usplat eval``: evaluate a trained model with the field's protocol (per-scene CSV, summary
+JSON, renders)."""
+
+import argparse
+import json
+
+from usplat_dr.evaluation import evaluate, synthetic_indices
+from usplat_dr.evaluation.lpips import LPIPS
+from usplat_dr.training.checkpoints import load_model
+
+DATASETS = ["synth", "re10k", "acid", "dtu"]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, help="usplat train's last.ckpt")
+    p.add_argument("--data", required=True, help="dataset root (chunk format)")
+    p.add_argument("--dataset", default="synth", choices=DATASETS)
+    p.add_argument("--index", nargs="+", metavar="SPLIT=PATH",
+                   help="evaluation index JSON(s); default: the synthetic set's own splits")
+    p.add_argument("--splits", nargs="+", help="synthetic splits to evaluate (default: all)")
+    p.add_argument("--image-shape", type=int, nargs=2, default=[256, 256], metavar=("H", "W"))
+    p.add_argument("--lpips-vgg", help="torchvision vgg16-397923af.pth (for LPIPS)")
+    p.add_argument("--lpips-lin", help="lpips/weights/v0.1/vgg.pth (for LPIPS)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--out", default="outputs/eval")
+
+
+def run(args: argparse.Namespace) -> int:
+    indices = dict(item.split("=", 1) for item in args.index) if args.index else None
+    if indices is None:
+        indices = synthetic_indices(args.data, args.splits)
+        if not indices:
+            print(f"no evaluation_index_*.json with scenes in {args.data}; pass --index "
+                  f"NAME=PATH (e.g. standard=assets/evaluation_index_re10k.json)")
+            return 2
+    lpips = None
+    if args.lpips_vgg or args.lpips_lin:
+        lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)
+    model, step = load_model(args.checkpoint, args.device)
+    dataset = {"name": args.dataset, "roots": [args.data], "image_shape": args.image_shape}
+    summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device)
+    print(json.dumps(summary, indent=1))
+    return 0

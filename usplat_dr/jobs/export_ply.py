@@ -1,0 +1,31 @@
+"""``usplat export-ply``: the Gaussians predicted for one target view, as a standard 3DGS
+PLY."""
+
+import argparse
+
+import torch
+
+from usplat_dr.data.types import model_inputs
+from usplat_dr.jobs.render_video import add_example_arguments, one_example
+from usplat_dr.model.ply import write_ply
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_example_arguments(p)
+    p.add_argument("--target", type=int, default=0, help="target view index")
+    p.add_argument("--min-opacity", type=float, default=0.0)
+    p.add_argument("--out", default="outputs/export/gaussians.ply")
+
+
+def run(args: argparse.Namespace) -> int:
+    model, batch = one_example(args)
+    with torch.no_grad():
+        out = model(*model_inputs(batch, torch.device(args.device)), render=False)
+    n = out.num_targets
+    if not 0 <= args.target < n:
+        print(f"--target must be in 0..{n - 1} (the scene's target views)")
+        return 2
+    path = write_ply(args.out, out.target(0, args.target), min_opacity=args.min_opacity)
+    print(f"wrote {path}: the Gaussians predicted for target {args.target} of "
+          f"{batch['scene'][0]}")
+    return 0

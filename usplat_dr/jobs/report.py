@@ -1,0 +1,290 @@
+"""Reports from result files: the demo's ``report.md`` (training curves, gradient stability,
+the tables), and ``usplat bench``'s chart and table. Pure functions from results to Markdown
+and PNG; the measuring is in ``demo`` and ``bench``."""
+
+import csv
+from pathlib import Path
+
+import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.lines import Line2D
+
+from usplat_dr.evaluation.verdict import table as verdict_table
+from usplat_dr.io import atomic_open
+from usplat_dr.jobs.budgets import BASE, FINETUNE_LR, PRESET, SHIPPED, VARIANTS, Budget
+
+
+def read_metrics(run: Path) -> list[dict]:
+    with open(run / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+GRAD_LABELS = {"grad_primary": "primary network", "grad_agnostic": "view-agnostic (e_a, H_a)",
+               "grad_specific": "view-specific H_s",
+               "grad_view_features": "view-specific features (ResNet, Proj, phi)"}
+
+
+def curves(runs: dict, path: Path) -> Path:
+    """Training loss, PSNR and the gradient norms of the network's parts (before clipping)."""
+    matplotlib.use("Agg")  # files only, no display
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.4))
+    for variant, run in runs.items():
+        rows = read_metrics(run)
+        steps = [int(r["step"]) for r in rows]
+        for ax, key in ((axes[0], "loss"), (axes[1], "psnr")):
+            values = [float(r[key]) for r in rows]
+            line, = ax.plot(steps, values, alpha=0.25, linewidth=0.8)
+            ax.plot(steps, smooth(values), color=line.get_color(),
+                    label=VARIANTS.get(variant, variant))
+        for key, label in GRAD_LABELS.items():
+            values = [float(r[key]) for r in rows if r.get(key)]
+            if values:
+                axes[2].plot(steps[-len(values):], smooth(values), linewidth=1,
+                             label=f"{VARIANTS.get(variant, variant)[:3]} {label}")
+    axes[0].set(xlabel="step", ylabel="training loss (MSE)", yscale="log")
+    axes[1].set(xlabel="step", ylabel="training PSNR (dB)")
+    axes[2].set(xlabel="step", ylabel="gradient norm before clipping", yscale="log")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+    return path
+
+
+def smooth(values: list[float]) -> list[float]:
+    """Moving average over ~1/15 of the run."""
+    w = max(1, len(values) // 15)
+    return [sum(values[max(0, i - w + 1):i + 1]) / len(values[max(0, i - w + 1):i + 1])
+            for i in range(len(values))]
+
+
+def stability(run: Path) -> dict:
+    """Loss and gradient-norm statistics of a training run's ``metrics.csv``: per part the
+    median and maximum gradient norm (before clipping) and the last quarter's median against
+    the first quarter's (bounded: the ratio stays near or below 1), and the skipped steps."""
+    rows = read_metrics(run)
+    q = max(1, len(rows) // 4)
+    loss = [float(r["loss"]) for r in rows]
+    out = {"steps": int(rows[-1]["step"]), "skipped": int(rows[-1]["skipped"]),
+           "loss_first_quarter": float(np.median(loss[:q])),
+           "loss_last_quarter": float(np.median(loss[-q:])), "parts": {}}
+    for key in ("grad_norm", *GRAD_LABELS):
+        values = [float(r[key]) for r in rows if r.get(key)]
+        if values:
+            out["parts"][key] = {"median": float(np.median(values)), "max": max(values),
+                                 "last_over_first_quarter": float(
+                                     np.median(values[-q:]) / np.median(values[:q]))}
+    return out
+
+
+def stability_lines(stable: dict) -> list[str]:
+    if not stable:
+        return []
+    lines = ["Gradient norms before clipping (clip at 0.5): median / maximum, and the last "
+             "quarter's median over the first quarter's; skipped non-finite steps.", "",
+             "| variant | part | median | max | last/first quarter |", "|---|---|---|---|---|"]
+    for variant, st in stable.items():
+        for key, p in st["parts"].items():
+            lines.append(f"| {VARIANTS[variant]} | {GRAD_LABELS.get(key, 'all parameters')} "
+                         f"| {p['median']:.3g} | {p['max']:.3g} | "
+                         f"{p['last_over_first_quarter']:.2f} |")
+    lines += ["", "Skipped steps: " + ", ".join(
+        f"{VARIANTS[v]} {st['skipped']} of {st['steps']}" for v, st in stable.items()), ""]
+    return lines
+
+
+def _label(variant: str, manifest: dict) -> str:
+    if variant == "base":
+        return f"(a) shipped `{BASE}` ({manifest[BASE]['steps']} steps)"
+    e = manifest[SHIPPED[variant]]
+    return f"{VARIANTS[variant]} `{e['name']}` ({e['steps']} steps)"
+
+
+def _cells(m: dict) -> str:
+    return f"{m['psnr']:.2f} / {m['ssim']:.3f} / {m['abs_rel']:.3f}"
+
+
+def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: dict,
+                 worst: dict, bench: dict, stable: dict, verdict: list, tuned: dict,
+                 prov: dict, manifest: dict) -> Path:
+    """``report.md`` in ``out``, from the results of the demo's steps (``run_demo``) and the
+    files they wrote (renders, ``bench_demo/bench.md``, ``bench/bench.md``)."""
+    test = next(iter(summaries.values()))["splits"]["standard"]["scenes"]
+    lines = [
+        "# usplat-dr demo report", "",
+        f"Budget `{budget}`: {b.test_scenes} fresh held-out scenes rendered by Mitsuba "
+        f"({b.frames} frames, {b.size}x{b.size}; a seed none of the checkpoints was trained or "
+        f"tested on), the shipped `{PRESET}` checkpoints evaluated on them with the field's "
+        f"protocol, and a brief fine-tuning ({b.steps} steps on {b.train_scenes} other "
+        f"scenes) from the shipped (a).", "",
+        "## The shipped checkpoints on fresh scenes (standard split)", "",
+        "| model | parameters | time per scene | peak memory | PSNR | SSIM | depth AbsRel |",
+        "|---|---|---|---|---|---|---|"]
+    for variant, s in summaries.items():
+        std = s["splits"]["standard"]
+        lines.append(f"| {_label(variant, manifest)} | {s['parameters'] / 1e6:.2f}M | "
+                     f"{1000 * s['time_per_scene_s']:.0f} ms | {s['peak_memory_gib']:.2f} GiB "
+                     f"| {std['psnr']:.2f} | {std['ssim']:.3f} | {std['abs_rel']:.3f} |")
+    lines += ["", f"(b) and (c) were initialised from `{BASE}` (zero-initialised hypernetwork "
+              f"outputs: they start exactly at it) and fine-tuned for the same steps, seed and "
+              f"data as (a) continued, the control they are paired with. Time per scene: 2 "
+              f"context views in, Gaussians and renders for every target (CPU, 2 threads). "
+              f"LPIPS: unavailable (no VGG/LPIPS weight files in the demo). Training recipes "
+              f"and data: `checkpoints/manifest.json`.", "",
+              "## Verdict on view conditioning (these scenes, the shipped seed)", "",
+              f"Paired per-scene differences against (a) continued over the {test} fresh "
+              "scenes (the stress splits hold the scenes that qualify), with bootstrap 95% "
+              "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
+              "variation; the multi-seed verdict (3 seeds x 60 scenes, "
+              "`train/verdict_study.py`) is in BENCHMARKS.md, \"View conditioning: the "
+              "verdict\".", "", verdict_table(verdict), "", "![verdict](verdict.png)", "",
+              "## Per split (PSNR / SSIM / depth AbsRel)", "",
+              "| split | scenes | " + " | ".join(_label(v, manifest) for v in summaries) + " |",
+              "|---|---|" + "---|" * len(summaries)]
+    first = next(iter(summaries.values()))
+    for split, m in first["splits"].items():
+        cells = [_cells(s["splits"][split]) for s in summaries.values()]
+        lines.append(f"| {split} | {m['scenes']} | " + " | ".join(cells) + " |")
+    lines += ["", "### Worst cases", "",
+              "Per split, the held-out scene with the lowest PSNR (context views, ground truth, "
+              "prediction, depth per target)."]
+    for split in first["splits"]:
+        for variant, w in worst.items():
+            if split in w:
+                lines.append(f"\n{VARIANTS[variant]}, {split}: {w[split].stem} "
+                             f"({w[split + '_psnr']:.2f} dB)\n\n![{split}]"
+                             f"({w[split].relative_to(out)})")
+    lines += ["", "## Fine-tuning briefly from the shipped (a)", "",
+              f"{b.steps} steps of (a) and (c) from `{BASE}` on the demo's {b.train_scenes} "
+              f"training scenes (learning rate {FINETUNE_LR:g}, depth supervision as shipped; "
+              "(c)'s view-specific ResNet18 starts from random weights, as in the shipped "
+              "(c): no ImageNet weight file here), "
+              "evaluated on the standard split: it shows that training runs; at this length it "
+              "says nothing about the verdict.", "",
+              "| model | PSNR / SSIM / AbsRel before | after |", "|---|---|---|"]
+    for variant, s in tuned.items():
+        lines.append(f"| {VARIANTS[variant]} | {_cells(summaries['base']['splits']['standard'])}"
+                     f" | {_cells(s['splits']['standard'])} |")
+    lines += ["", "![training curves](training_curves.png)", "", *stability_lines(stable),
+              "## Speed against accuracy", "",
+              "The shipped (a) continued and (c), measured by `usplat bench`'s code on the "
+              "standard split: Gaussian budgets (pruning per target before rasterising) at "
+              f"{b.size}x{b.size} and a smaller render size.", "",
+              "![speed against accuracy](bench_demo/bench.png)", "",
+              (out / "bench_demo" / "bench.md").read_text().rstrip(), "",
+              "Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; on "
+              "by default where it costs less than 0.05 dB):", "",
+              "| pruning | worst PSNR change | kept | safe |", "|---|---|---|---|"]
+    for name, p in sorted(bench["pruning"].items()):
+        lines.append(f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | "
+                     f"{p['kept_fraction']:.2f} | {'yes' if p['safe'] else 'no'} |")
+    full_bench = out / "bench" / "bench.md"
+    if full_bench.is_file():
+        lines += ["", "### Full `usplat bench` (all presets)", "",
+                  "![usplat bench](bench/bench.png)", "", full_bench.read_text().rstrip()]
+    lines += ["", "## Novel views", "",
+              "Each row: context views, ground truth, prediction, predicted depth."]
+    for variant in ("baseline", "full"):
+        renders = sorted((out / f"eval_shipped_{variant}" / "renders" / "standard")
+                         .glob("*.png"))[:2]
+        for r in renders:
+            lines.append(f"\n{VARIANTS[variant]}, {r.stem}:\n\n![{r.stem}]"
+                         f"({r.relative_to(out)})")
+    lines += ["", "## Where these numbers came from", "",
+              "| | |", "|---|---|",
+              *[f"| {k} | {v} |" for k, v in prov.items() if k != "data"],
+              *[f"| data `{k}` | sha256 `{v}` |" for k, v in prov["data"].items()],
+              *[f"| checkpoint `{n}` | sha256 `{e['sha256'][:16]}...`, {e['steps']} steps, "
+                f"data: {e['data']} |" for n, e in manifest.items()],
+              "", "Same command, same machine kind: docs/reproducibility.md says what is "
+              "pinned (USPLAT_PORTABLE) and what can still differ.",
+              "", "## Wall time", "", "| stage | seconds |", "|---|---|"]
+    lines += [f"| {k} | {v:.0f} |" for k, v in timings.items()]
+    path = out / "report.md"
+    with atomic_open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return path
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points no other point beats (lower x and higher y, at least one
+    strictly), sorted by x.
+
+    >>> pareto([(1.0, 1.0), (2.0, 3.0), (3.0, 2.0), (4.0, 4.0)])
+    [0, 1, 3]
+    """
+    front = [i for i, (x, y) in enumerate(points)
+             if not any(x2 <= x and y2 >= y and (x2 < x or y2 > y) for x2, y2 in points)]
+    return sorted(front, key=lambda i: points[i][0])
+
+
+def bench_chart(rows: list[dict], model_size: int, path: Path) -> Path:
+    """``usplat bench``'s chart: accuracy against time per view (with the Pareto front) and
+    against Gaussians rendered per view."""
+    matplotlib.use("Agg")  # files only, no display
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    colours = {c: plt.cm.tab10(i % 10) for i, c in enumerate(configs)}
+    markers = {"all": "o", "cull": "s", "cull+merge1px": "D", "cull+merge2px": "d",
+               "keep50%": "v", "keep25%": "^"}
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4.6))
+    main = [r for r in rows if r["render_size"] == model_size]
+    for r in main:
+        kw = dict(color=colours[r["config"]], marker=markers.get(r["prune"], "o"), s=36,
+                  edgecolors="k", linewidths=0.4, zorder=3)
+        ax0.scatter(r["time_per_view_ms"], r["psnr"], **kw)
+        ax1.scatter(r["gaussians_per_view"], r["psnr"], **kw)
+    for r in rows:
+        if r["render_size"] != model_size:
+            ax0.scatter(r["time_per_view_ms"], r["psnr"], color=colours[r["config"]],
+                        marker="o", s=36, facecolors="none", zorder=2)
+            ax0.annotate(f"{r['render_size']}px", (r["time_per_view_ms"], r["psnr"]),
+                         fontsize=7, xytext=(3, -8), textcoords="offset points")
+    front = pareto([(r["time_per_view_ms"], r["psnr"]) for r in main])
+    ax0.plot([main[i]["time_per_view_ms"] for i in front], [main[i]["psnr"] for i in front],
+             "k--", linewidth=1, label="Pareto front", zorder=1)
+    for i in front:
+        ax0.annotate(f"{main[i]['config']}, {main[i]['prune']}",
+                     (main[i]["time_per_view_ms"], main[i]["psnr"]), fontsize=7,
+                     xytext=(4, 4), textcoords="offset points")
+    handles = [Line2D([], [], color=colours[c], marker="o", linestyle="", label=c)
+               for c in configs]
+    handles += [Line2D([], [], color="grey", marker=m, linestyle="", label=p)
+                for p, m in markers.items() if any(r["prune"] == p for r in main)]
+    handles += [Line2D([], [], color="k", linestyle="--", label="Pareto front"),
+                Line2D([], [], color="grey", marker="o", markerfacecolor="none",
+                       linestyle="", label="other render size")]
+    ax0.set(xscale="log", xlabel="time per novel view (ms, log)",
+            ylabel="PSNR (dB, held-out, standard split)",
+            title=f"accuracy against time ({model_size}x{model_size})")
+    ax1.set(xscale="log", xlabel="Gaussians rendered per view (log)", ylabel="PSNR (dB)",
+            title="accuracy against Gaussians")
+    for ax in (ax0, ax1):
+        ax.grid(alpha=0.3, which="both")
+    ax1.legend(handles=handles, fontsize=7, loc="best")
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+    return path
+
+
+def bench_table(rows: list[dict]) -> str:
+    """``usplat bench``'s rows as a Markdown table."""
+    def fmt(v, spec):
+        return "-" if v is None else format(v, spec)
+
+    lines = ["| config | params | pruning | size | ms/view | CPU ms/view | peak MiB | "
+             "Gaussians/view | kept | PSNR | dPSNR | SSIM | AbsRel |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['config']} | {r['parameters'] / 1e6:.2f}M | {r['prune']} | "
+            f"{r['render_size']} | {r['time_per_view_ms']:.1f} | "
+            f"{r['cpu_time_per_view_ms']:.1f} | {fmt(r['peak_memory_mib'], '.0f')} | "
+            f"{r['gaussians_per_view']:.0f} | {r['kept_fraction']:.2f} | {r['psnr']:.2f} | "
+            f"{fmt(r['psnr_change_db'], '+.3f')} | {r['ssim']:.3f} | {r['abs_rel']:.3f} |")
+    return "\n".join(lines)

@@ -1,0 +1,26 @@
+"""``usplat train``: train UniqueSplat (any variant) with the field's recipe, on one process or
+under ``torchrun`` (DistributedDataParallel)."""
+
+import argparse
+import json
+
+from usplat_dr.config import load_config
+from usplat_dr.training import train
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", action="append",
+                   help="a YAML file's path, or a packaged config's name (usplat_dr/configs/: "
+                   "synthetic_tiny.yaml, synthetic_tiny_depth.yaml, ...); repeat to merge "
+                   "several in order (default: synthetic_tiny.yaml)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from output_dir/checkpoints/last.ckpt when it exists")
+    p.add_argument("overrides", nargs="*", metavar="key.sub=value",
+                   help="dotted overrides, e.g. optimizer.lr=1e-4 train.steps=100")
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config or ["synthetic_tiny.yaml"], args.overrides)
+    result = train(cfg, resume=args.resume)
+    print(json.dumps(result))
+    return 0

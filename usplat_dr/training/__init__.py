@@ -1,0 +1,6 @@
+"""Training: the trainer (``trainer``), the configuration's sections as objects (``config``),
+processes and RNG state (``distributed``), and checkpoint files (``checkpoints``)."""
+
+from usplat_dr.training.trainer import Trainer, TrainingStopped, train
+
+__all__ = ["Trainer", "TrainingStopped", "train"]

@@ -1,0 +1,82 @@
+"""Checkpoint files of training: a model from one (``load_model``), the primary network of a
+trained (a) as the start of (b) and (c) (``init_from_checkpoint``), and a shippable copy of
+one (``export_weights``)."""
+
+import logging
+import os
+from pathlib import Path
+
+import torch
+
+from usplat_dr.config import ConfigError
+from usplat_dr.io import torch_save
+from usplat_dr.model import UniqueSplat, UniqueSplatCfg
+
+
+def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"):
+    """A ``UniqueSplat`` from a training checkpoint (``usplat train``'s ``last.ckpt``)."""
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist (usplat train writes "
+                                f"OUTPUT_DIR/checkpoints/last.ckpt)")
+    state = torch.load(path, map_location=device, weights_only=False)
+    if "model_config" not in state:
+        raise ValueError(f"{path} is not a usplat training checkpoint (no 'model_config'); "
+                         f"an MVSplat checkpoint loads with UniqueSplat.load_mvsplat")
+    resnet_log = logging.getLogger("usplat_dr.model.hypernet.resnet")
+    level = resnet_log.level
+    resnet_log.setLevel(logging.ERROR)  # its weights come from the checkpoint, not a file
+    try:
+        model = UniqueSplat(UniqueSplatCfg.from_dict(state["model_config"]))
+    finally:
+        resnet_log.setLevel(level)
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), state.get("step", 0)
+
+
+def load_models(runs: dict, device) -> dict:
+    """``{key: model}`` from ``{key: run folder}`` (each run's ``checkpoints/last.ckpt``)."""
+    return {key: load_model(run / "checkpoints" / "last.ckpt", device)[0]
+            for key, run in runs.items()}
+
+
+def init_from_checkpoint(model, path: str | os.PathLike) -> None:
+    """The paper's protocol: the primary network (encoder and predictor) from a trained
+    usplat checkpoint (``usplat train``'s or a shipped one, any variant); for (b) and (c) its
+    target layers' weights become W, and the hypernetworks' zero-initialised outputs make
+    the model start exactly where that checkpoint is."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"model.init_from: checkpoint {str(path)!r} does not exist")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if "model_config" not in state:
+        raise ConfigError(f"model.init_from: {path} is not a usplat checkpoint (no "
+                          f"'model_config'); an MVSplat checkpoint goes in model.init_mvsplat")
+    sd = state["model"]
+    if state["model_config"]["variant"] != "baseline":
+        raise ConfigError(f"model.init_from: {path} holds variant "
+                          f"{state['model_config']['variant']!r}; start from a baseline (a) "
+                          f"checkpoint (its primary network is complete)")
+    primary = {k.removeprefix("primary."): v.float() for k, v in sd.items()
+               if k.startswith("primary.")}
+    model.load_mvsplat(primary)
+
+
+def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: bool = True,
+                   metadata: dict | None = None) -> Path:
+    """A shippable copy of a training checkpoint: the model's weights (float16 when ``half``:
+    half the bytes, and evaluation within 0.01 dB of float32, measured by
+    ``train/ship_checkpoint.py``), its model config, training config, step, provenance and
+    ``metadata``; no optimiser, scheduler or RNG state. Plain data only, so it loads with
+    ``torch.load(weights_only=True)``; ``usplat eval/render/export-ply --checkpoint`` and
+    ``model.init_from`` read it like a training checkpoint."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    if "model_config" not in state:
+        raise ValueError(f"checkpoint {checkpoint} is not a usplat training checkpoint")
+    weights = {k: (v.half() if half and v.is_floating_point() else v).contiguous()
+               for k, v in state["model"].items()}
+    shipped = {"format": "usplat-weights/1", "model": weights,
+               "model_config": state["model_config"], "config": state.get("config", {}),
+               "step": state.get("step", 0), "provenance": state.get("provenance", {}),
+               "metadata": metadata or {}}
+    return torch_save(shipped, out)

@@ -1,0 +1,433 @@
+"""Training: the field's recipe (Adam, one-cycle cosine schedule, gradient clipping at 0.5,
+2 context + 4 target views, MSE + 0.05 LPIPS after a given step) on one process or under
+``torchrun`` (DistributedDataParallel: gloo on CPU, nccl on GPU), CPU or CUDA.
+
+Nothing is lost: checkpoints are written atomically every ``train.checkpoint_every`` steps and
+on SIGINT/SIGTERM; ``resume`` continues exactly (model, optimiser, scheduler, step, RNG states,
+data position). A step with a non-finite loss or gradient is skipped with a warning and
+counted; ``train.max_nonfinite`` of them in a row stop the run with a message and a checkpoint
+of the last good state.
+"""
+
+import csv
+import logging
+import math
+import os
+import random
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader, default_collate
+from tqdm import tqdm
+
+from usplat_dr.config import ConfigError, check_keys
+from usplat_dr.data.dataset import ChunkDataset, dataset_from_section
+from usplat_dr.data.types import model_inputs
+from usplat_dr.data.view_sampler import StepTracker
+from usplat_dr.evaluation.figures import save_comparison
+from usplat_dr.evaluation.lpips import LPIPS
+from usplat_dr.evaluation.provenance import provenance
+from usplat_dr.geometry.cameras import pixel_centres
+from usplat_dr.io import torch_save
+from usplat_dr.training.config import SECTIONS, model_from_config
+from usplat_dr.training.distributed import rng_state, set_rng_state, setup_distributed
+
+log = logging.getLogger(__name__)
+
+class TrainingStopped(RuntimeError):
+    """Training stopped on purpose (non-finite steps); the message says why and where the last
+    good checkpoint is."""
+
+
+def adam(params, lr: float) -> torch.optim.Adam:
+    """Adam, fused where this torch has the fused kernel for the parameters' device (one
+    kernel for all parameters: 31 -> 14 ms a step for the tiny preset's 1.7M parameters on
+    one core; the same update up to float rounding). ``params``: tensors or param groups."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, TypeError):  # no fused kernel for this device or torch version
+        return torch.optim.Adam(params, lr=lr)
+
+
+def parameter_groups(model: torch.nn.Module, lr: float | int,
+                     hyper_lr_scale: float | int = 1.0) -> list[dict]:
+    """Adam's parameter groups: the primary network at ``lr``; the hypernetwork branches
+    (e_a and H_a, H_s, the view-specific features) at ``lr * hyper_lr_scale``
+    (``optimizer.hyper_lr_scale``: the per-branch learning rate of docs/learning.md; 1 is the
+    paper's single rate). One group when the scale is 1 or the model has no hypernetwork."""
+    scale = float(hyper_lr_scale)
+    if not (math.isfinite(scale) and scale > 0):
+        raise ConfigError(f"optimizer.hyper_lr_scale must be a positive number, got "
+                          f"{hyper_lr_scale!r}")
+    primary, hyper = [], []
+    for name, p in model.named_parameters():
+        (primary if name.split(".", 1)[0] == "primary" else hyper).append(p)
+    if scale == 1.0 or not hyper:
+        return [{"params": primary + hyper, "lr": lr}]
+    return [{"params": primary, "lr": lr}, {"params": hyper, "lr": lr * scale}]
+
+
+class Batches:
+    """An endless stream of batches over epochs, with a position (epoch, batches taken in the
+    epoch) that a resumed run replays to: the same batches in the same order."""
+
+    def __init__(self, dataset, batch_size: int, num_workers: int):
+        self.dataset = dataset
+        self.loader = DataLoader(dataset, batch_size=batch_size, num_workers=num_workers,
+                                 persistent_workers=False)
+        self.epoch, self.taken = 0, 0
+        self._it = None
+
+    def state(self) -> dict:
+        return {"epoch": self.epoch, "taken": self.taken}
+
+    def restore(self, state: dict) -> None:
+        self.epoch, self.taken = state["epoch"], 0
+        self.dataset.set_epoch(self.epoch)
+        self._it = iter(self.loader)
+        for _ in range(state["taken"]):  # replay (decodes the skipped batches once)
+            next(self._it)
+            self.taken += 1
+
+    def next(self) -> dict:
+        for _ in range(2):
+            if self._it is None:
+                self.dataset.set_epoch(self.epoch)
+                self._it = iter(self.loader)
+            try:
+                batch = next(self._it)
+                self.taken += 1
+                return batch
+            except StopIteration:
+                self._it, self.epoch, self.taken = None, self.epoch + 1, 0
+        raise ConfigError("the training set yields no examples (see the dataset summary "
+                          "above: too few frames for the view sampler, or every scene skipped)")
+
+
+def depth_loss(aux: dict, depth: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+    """Depth supervision of the context views: mean |log d_pred - log d_true| over the pixels
+    with a finite positive ground-truth depth, on the refined and on the coarse depth
+    (``aux``'s ``context_depths`` / ``context_coarse_depths``).
+
+    ``depth`` [B, V, H, W] is camera-space z (synthetic sets carry it, +inf on a miss), while
+    MVSplat's depth is the distance along the pixel's unit ray (the adapter places a Gaussian
+    at origin + d * direction / |direction|), so z is converted: d = z |K^-1 (x, y, 1)| at
+    the pixel centre (up to 15% apart at the corners of a 60-degree view). The log error is
+    scale-free (for small errors it is AbsRel), so near and far scenes weigh alike; the coarse
+    term keeps a gradient where the refined depth is clamped to [near, far] (the clamp
+    passes none)."""
+    b, v, h, w = depth.shape
+    xy1 = torch.cat([pixel_centres(h, w, depth.device), depth.new_ones(h * w, 1)], -1)
+    ray = torch.einsum("bvij,rj->bvri", intrinsics.inverse(), xy1).norm(dim=-1)
+    valid = torch.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        return depth.new_zeros(())
+    log_true = (depth * ray.view(b, v, h, w))[valid].log()
+    total = depth.new_zeros(())
+    for key in ("context_depths", "context_coarse_depths"):
+        total = total + (aux[key][valid].log() - log_true).abs().mean()
+    return total
+
+
+# ---- the trainer -------------------------------------------------------------------------------
+
+class Trainer:
+    def __init__(self, cfg: dict):
+        check_keys(cfg, SECTIONS, "the configuration's top level")
+        self.cfg = cfg
+        self.tcfg = {"steps": 1000, "checkpoint_every": 500, "validate_every": 500,
+                     "log_every": 10, "max_nonfinite": 20, "progress": True,
+                     **(cfg.get("train") or {})}
+        check_keys(self.tcfg, {"steps", "checkpoint_every", "validate_every", "log_every",
+                               "max_nonfinite", "progress"}, "train")
+        self.ocfg = {"lr": 2e-4, "warm_up_fraction": 0.01, "gradient_clip": 0.5,
+                     "hyper_lr_scale": 1.0, **(cfg.get("optimizer") or {})}
+        check_keys(self.ocfg, {"lr", "warm_up_fraction", "gradient_clip", "hyper_lr_scale"},
+                   "optimizer")
+        self.lcfg = {"mse": 1.0, "lpips": 0.05, "lpips_after_step": 150_000,
+                     "lpips_vgg": None, "lpips_lin": None, "depth": 0.0,
+                     "depth_until_step": None, **(cfg.get("loss") or {})}
+        check_keys(self.lcfg, {"mse", "lpips", "lpips_after_step", "lpips_vgg", "lpips_lin",
+                               "depth", "depth_until_step"}, "loss")
+        self.out = Path(cfg.get("output_dir", "outputs/train"))
+        self.rank, self.world, self.device = setup_distributed(cfg.get("device", "cpu"),
+                                                               cfg.get("threads"))
+        seed = int(cfg.get("seed", 0))
+        # The same seed on every rank: identical initial weights (DDP would broadcast rank 0's
+        # anyway); the data is sharded by the dataset and its samplers have their own seeds.
+        torch.manual_seed(seed)
+        np.random.seed(seed)
+        random.seed(seed)
+
+        self.lpips = None
+        if self.lcfg["lpips"] > 0 and self.lcfg["lpips_after_step"] < self.tcfg["steps"]:
+            # Stops at start-up (not at step 150k) when the files are missing.
+            self.lpips = LPIPS.from_files(self.lcfg["lpips_vgg"],
+                                          self.lcfg["lpips_lin"]).to(self.device)
+
+        self.model = model_from_config(cfg.get("model") or {}).to(self.device)
+        self.ddp = self.model
+        if self.world > 1:
+            self.ddp = torch.nn.parallel.DistributedDataParallel(self.model)
+        self.step_tracker = StepTracker()
+        dl = {"batch_size": 1, "num_workers": 0, **(cfg.get("data_loader") or {})}
+        check_keys(dl, {"batch_size", "num_workers"}, "data_loader")
+        self.batches = Batches(dataset_from_section(cfg.get("dataset") or {}, "train",
+                                                   self.step_tracker),
+                               dl["batch_size"], dl["num_workers"])
+        groups = parameter_groups(self.model, self.ocfg["lr"], self.ocfg["hyper_lr_scale"])
+        self.optimizer = adam(groups, self.ocfg["lr"])
+        self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            self.optimizer, [g["lr"] for g in groups], total_steps=self.tcfg["steps"] + 10,
+            pct_start=self.ocfg["warm_up_fraction"], cycle_momentum=False,
+            anneal_strategy="cos")
+        # What this run ran on (data content hash, library versions, CPU, threads): saved
+        # in every checkpoint, so runs that differ can be told apart.
+        self.provenance = (provenance((cfg.get("dataset") or {}).get("roots") or ())
+                           if self.rank == 0 else {})
+        self.step = 0
+        self.skipped = 0
+        self.consecutive_bad = 0
+        self._stop_signal = None
+        self._val_batch = None
+
+    # -- checkpoints --
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out / "checkpoints" / "last.ckpt"
+
+    def save(self) -> Path | None:
+        if self.rank != 0:
+            return None
+        state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                 "scheduler": self.scheduler.state_dict(), "step": self.step,
+                 "rng": rng_state(), "data": self.batches.state(), "skipped": self.skipped,
+                 "config": self.cfg, "model_config": self.model.cfg.to_dict(),
+                 "provenance": self.provenance}
+        return torch_save(state, self.checkpoint_path)
+
+    def resume(self, path: str | os.PathLike | None = None) -> bool:
+        """Continue from ``path`` (default: this run's last checkpoint). False when there is
+        none to resume from."""
+        path = Path(path) if path else self.checkpoint_path
+        if not path.is_file():
+            return False
+        # our own file: it holds RNG states (numpy arrays), so full unpickling is needed
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.step, self.skipped = state["step"], state["skipped"]
+        self.step_tracker.set_step(self.step)
+        self.batches.restore(state["data"])
+        set_rng_state(state["rng"])
+        log.info("resumed from %s at step %d", path, self.step)
+        return True
+
+    # -- one step --
+    def loss(self, out, batch: dict) -> tuple[torch.Tensor, dict]:
+        """MSE on the targets, + LPIPS after ``loss.lpips_after_step``, + the depth term
+        (``loss.depth`` > 0, until ``loss.depth_until_step``) where the data has depth."""
+        pred = out.color
+        target = batch["target"]["image"].to(self.device)
+        mse = (pred - target).square().mean()
+        loss = self.lcfg["mse"] * mse
+        parts = {"mse": mse.item()}
+        until = self.lcfg["depth_until_step"]
+        if (self.lcfg["depth"] > 0 and (until is None or self.step < until)
+                and "depth" in batch["context"]):
+            d = depth_loss(out.aux, batch["context"]["depth"].to(self.device),
+                           batch["context"]["intrinsics"].to(self.device))
+            loss = loss + self.lcfg["depth"] * d
+            parts["depth"] = d.item()
+        if self.lpips is not None and self.step >= self.lcfg["lpips_after_step"]:
+            lp = self.lpips(pred.flatten(0, 1), target.flatten(0, 1)).mean()
+            loss = loss + self.lcfg["lpips"] * lp
+            parts["lpips"] = lp.item()
+        return loss, parts
+
+    #: Parameter groups whose gradient norms (before clipping) go into metrics.csv: the
+    #: primary network, the view-agnostic branch (e_a, H_a), the view-specific hypernetwork
+    #: H_s and the view-specific features (ResNet18, lateral convs, Proj, phi).
+    GRAD_GROUPS = {"primary": "grad_primary", "agnostic": "grad_agnostic",
+                   "specific": "grad_specific", "view_embedding": "grad_view_features"}
+
+    def group_grad_norms(self) -> dict:
+        groups: dict[str, list[torch.Tensor]] = {}
+        for name, p in self.model.named_parameters():
+            key = self.GRAD_GROUPS.get(name.split(".", 1)[0])
+            if key is not None and p.grad is not None:
+                groups.setdefault(key, []).append(p.grad.detach())
+        # One foreach kernel per group (a per-parameter float64 sum cost ~14 ms a step).
+        norms = {k: torch.stack(torch._foreach_norm(g)).norm() for k, g in groups.items()}
+        return dict(zip(norms, torch.stack(list(norms.values())).tolist())) if norms else {}
+
+    def train_step(self, batch: dict) -> dict | None:
+        self.ddp.train()
+        args = model_inputs(batch, self.device)
+        target = batch["target"]["image"].to(self.device)
+        self.optimizer.zero_grad(set_to_none=True)
+        # BatchNorm statistics change in the forward pass: kept to be put back if the step
+        # is skipped (a NaN input would otherwise poison them for good)
+        buffers = {n: b.detach().clone() for n, b in self.model.named_buffers()}
+        out = self.ddp(*args, global_step=self.step)
+        loss, parts = self.loss(out, batch)
+        loss.backward()
+        parts.update(self.group_grad_norms())
+        norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(),
+                                              self.ocfg["gradient_clip"])
+        finite = torch.isfinite(loss) & torch.isfinite(norm)
+        if self.world > 1:  # every rank takes the same decision
+            flag = finite.float().to(self.device)
+            dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+            finite = flag > 0
+        if not bool(finite):
+            self.skipped += 1
+            self.consecutive_bad += 1
+            log.warning("step %d: non-finite loss or gradient (loss %s, grad norm %s); step "
+                        "skipped (%d so far)", self.step, loss.item(), norm.item(), self.skipped)
+            self.optimizer.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                for n, b in self.model.named_buffers():
+                    if n in buffers:
+                        b.copy_(buffers[n])
+            return None
+        self.consecutive_bad = 0
+        self.optimizer.step()
+        self.scheduler.step()
+        with torch.no_grad():
+            mse = (out.color.clamp(0, 1) - target).square().mean((-3, -2, -1))
+            psnr = (-10 * torch.log10(mse.clamp(min=1e-10))).mean().item()
+        return {"loss": loss.item(), "psnr": psnr, "grad_norm": norm.item(),
+                "lr": self.scheduler.get_last_lr()[0], **parts}
+
+    # -- the loop --
+    def _on_signal(self, signum, frame):
+        self._stop_signal = signum
+        log.warning("signal %d: saving a checkpoint after this step", signum)
+
+    def fit(self) -> dict:
+        steps = self.tcfg["steps"]
+        self.out.mkdir(parents=True, exist_ok=True)
+        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        metrics_path = self.out / "metrics.csv"
+        writer = None
+        if self.rank == 0:
+            rows = []
+            if metrics_path.exists():  # keep the rows of the steps this run has kept
+                with open(metrics_path) as f:
+                    rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
+            f = open(metrics_path, "w", newline="")
+            fields = ["step", "loss", "mse", "lpips", "depth", "psnr", "grad_norm",
+                      *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s"]
+            writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+        board = None
+        if self.rank == 0:
+            try:  # TensorBoard when it is installed (optional)
+                from torch.utils.tensorboard import SummaryWriter
+
+                board = SummaryWriter(str(self.out / "tensorboard"), purge_step=self.step)
+            except ImportError:
+                pass
+        bar = None
+        if self.rank == 0 and self.tcfg["progress"]:
+            bar = tqdm(total=steps, initial=self.step, desc="train", dynamic_ncols=True)
+        start, t0, last = self.step, time.perf_counter(), {}
+        try:
+            while self.step < steps:
+                self.step_tracker.set_step(self.step)
+                batch = self.batches.next()
+                if self._val_batch is None:
+                    self._val_batch = self.validation_batch(batch)
+                stats = self.train_step(batch)
+                if stats is None and self.consecutive_bad >= self.tcfg["max_nonfinite"]:
+                    path = self.save()
+                    raise TrainingStopped(
+                        f"{self.consecutive_bad} steps in a row had a non-finite loss or "
+                        f"gradient (last at step {self.step}); stopped. The last good state "
+                        f"is in {path or self.checkpoint_path}: lower optimizer.lr or check "
+                        f"the data, then resume")
+                self.step += 1
+                if stats is not None:
+                    last = stats
+                elapsed = time.perf_counter() - t0
+                rate = (self.step - start) / max(elapsed, 1e-9)
+                if writer is not None and (self.step % self.tcfg["log_every"] == 0
+                                           or self.step == steps) and last:
+                    writer.writerow({"step": self.step, **last, "skipped": self.skipped,
+                                     "steps_per_s": rate, "time_s": elapsed})
+                    f.flush()
+                    if board is not None:
+                        for key, value in last.items():
+                            board.add_scalar(f"train/{key}", value, self.step)
+                if bar is not None:
+                    bar.update(1)
+                    if last:
+                        bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
+                                        skipped=self.skipped)
+                if self.step % self.tcfg["checkpoint_every"] == 0 or self.step == steps:
+                    self.save()
+                if self.rank == 0 and (self.step % self.tcfg["validate_every"] == 0
+                                       or self.step == steps):
+                    self.validate()
+                stop = self._stop_signal is not None
+                if self.world > 1:  # all ranks stop after the same step (else: a hang)
+                    flag = torch.tensor(float(stop), device=self.device)
+                    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+                    stop = bool(flag > 0)
+                if stop:
+                    self.save()
+                    log.warning("stopped by signal %s at step %d; resume with --resume",
+                                self._stop_signal, self.step)
+                    break
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+            if bar is not None:
+                bar.close()
+            if writer is not None:
+                f.close()
+            if board is not None:
+                board.close()
+        return {"step": self.step, "skipped": self.skipped, **last}
+
+    def validation_batch(self, fallback: dict) -> dict:
+        """The first example of the validation stage (the dataset's test folder) when there
+        is one, else ``fallback`` (a training batch)."""
+        try:
+            ds = dataset_from_section(self.cfg.get("dataset") or {}, "val")
+            example = next(iter(ds), None) if isinstance(ds, ChunkDataset) else None
+        except (ValueError, FileNotFoundError, StopIteration):
+            example = None
+        if example is None:
+            return {side: {k: v[:1] for k, v in fallback[side].items()}
+                    for side in ("context", "target")}
+        return default_collate([example])
+
+    @torch.no_grad()
+    def validate(self) -> Path | None:
+        """A PNG grid of the validation scene: context | target | prediction | depth, a row
+        per target view."""
+        if self._val_batch is None:
+            return None
+        self.model.eval()
+        out = self.model(*model_inputs(self._val_batch, self.device))
+        return save_comparison(self.out / "validation" / f"step_{self.step:07d}.png",
+                               self._val_batch, out)
+
+
+def train(cfg: dict, resume: bool = False) -> dict:
+    trainer = Trainer(cfg)
+    if resume and not trainer.resume():
+        log.info("no checkpoint in %s: starting from step 0", trainer.checkpoint_path.parent)
+    result = trainer.fit()
+    if dist.is_initialized():
+        dist.destroy_process_group()
+    return result
