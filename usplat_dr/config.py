@@ -14,8 +14,11 @@ replaces. Override values are parsed as YAML (``lr=1e-6``, ``steps=100``,
 """
 
 import copy
+import dataclasses
 import os
 import re
+import types
+import typing
 from importlib.resources import files
 from pathlib import Path, PurePosixPath
 
@@ -98,9 +101,28 @@ def find_config(ref: str | os.PathLike, relative_to: Path | Traversable | None =
                       f"pass the path of a YAML file or one of {packaged_names()}")
 
 
-def read_file(path: str | os.PathLike | Traversable, _seen: tuple = ()) -> dict:
+class Config(dict):
+    """A loaded configuration: a plain dict, plus ``origins``, the file (or command-line
+    override) that set each dotted key, so that errors can name where a value came from."""
+
+    def __init__(self, data=(), origins: dict[str, str] | None = None):
+        super().__init__(data)
+        self.origins = dict(origins or {})
+
+
+def _record(origins: dict[str, str], data, where: str, prefix: str = "") -> None:
+    """Note ``where`` as the origin of every key in ``data`` (nested keys dotted)."""
+    if not isinstance(data, dict):
+        return
+    for key, value in data.items():
+        origins[prefix + str(key)] = where
+        _record(origins, value, where, f"{prefix}{key}.")
+
+
+def read_file(path: str | os.PathLike | Traversable, _seen: tuple = (),
+              origins: dict[str, str] | None = None) -> dict:
     """One config file (a path, a packaged name or a packaged resource) merged over its
-    includes."""
+    includes; ``origins`` (when given) receives the file that set each dotted key."""
     source = find_config(path) if isinstance(path, (str, os.PathLike)) else path
     key = str(source.resolve()) if isinstance(source, Path) else str(source)
     if key in _seen:
@@ -116,11 +138,13 @@ def read_file(path: str | os.PathLike | Traversable, _seen: tuple = ()) -> dict:
         includes = [includes]
     out = {}
     for inc in includes:
-        out = merge(out, read_file(find_config(inc, source.parent), _seen + (key,)))
+        out = merge(out, read_file(find_config(inc, source.parent), _seen + (key,), origins))
+    if origins is not None:
+        _record(origins, data, key)
     return merge(out, data)
 
 
-def apply_override(cfg: dict, override: str) -> dict:
+def apply_override(cfg: dict, override: str, origins: dict[str, str] | None = None) -> dict:
     if "=" not in override:
         raise ConfigError(f"override {override!r} must look like key.sub=value")
     key, raw = override.split("=", 1)
@@ -136,20 +160,96 @@ def apply_override(cfg: dict, override: str) -> dict:
                               f"section")
         node = node.setdefault(part, {})
     node[parts[-1]] = value
+    if origins is not None:
+        _record(origins, {key.strip(): value}, f"the command line ({override})")
     return cfg
 
 
-def load_config(paths, overrides=()) -> dict:
+def load_config(paths, overrides=()) -> Config:
     """Merge the files (each with its includes) and apply the overrides. ``paths``: paths of
     YAML files or names of packaged configs (``synthetic_tiny.yaml``)."""
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
-    cfg = {}
+    cfg, origins = {}, {}
     for p in paths:
-        cfg = merge(cfg, read_file(p))
+        cfg = merge(cfg, read_file(p, origins=origins))
     for o in overrides:
-        cfg = apply_override(cfg, o)
-    return cfg
+        cfg = apply_override(cfg, o, origins)
+    return Config(cfg, origins)
+
+
+# ---- typed configs ---------------------------------------------------------------------
+
+def _where(origins: dict[str, str], key: str) -> str:
+    """Where ``key`` (dotted) was set, for messages: its file or override, else the key's
+    nearest section that has an origin."""
+    parts = key.split(".")
+    for i in range(len(parts), 0, -1):
+        if ".".join(parts[:i]) in origins:
+            return origins[".".join(parts[:i])]
+    return "the configuration"
+
+
+def _typed_value(tp, value, key: str, origins: dict[str, str]):
+    """``value`` checked against the annotation ``tp`` (int, float, bool, str, None, dict,
+    a dataclass, or a union of them): ints are accepted for floats; anything else is a
+    ``ConfigError`` naming the key, the expected type and the value's origin."""
+    if dataclasses.is_dataclass(tp):
+        return load_typed(tp, value, key, origins)
+    options = typing.get_args(tp) if isinstance(tp, types.UnionType) else (tp,)
+    for option in options:
+        if option is type(None) and value is None:
+            return None
+        if option is bool and isinstance(value, bool):
+            return value
+        if option is int and isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if option is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if option in (str, dict) and isinstance(value, option):
+            return value
+        if option is dict and value is None:  # a section with nothing under it
+            return {}
+        if typing.get_origin(option) is dict and isinstance(value, dict):
+            return value
+    expected = " or ".join("null" if o is type(None) else getattr(o, "__name__", str(o))
+                           for o in options)
+    raise ConfigError(f"{key}={value!r}: expected {expected}, got {type(value).__name__} "
+                      f"(set in {_where(origins, key)})")
+
+
+def load_typed(cls, data, section: str = "", origins: dict[str, str] | None = None):
+    """The dataclass ``cls`` from the mapping ``data`` (a config section): missing keys keep
+    the dataclass's defaults, unknown keys and values of the wrong type are a ``ConfigError``
+    naming the key and the file or override that set it.
+
+    Examples:
+        >>> @dataclasses.dataclass(frozen=True)
+        ... class Train:
+        ...     steps: int = 10
+        >>> load_typed(Train, {"steps": 3}, "train")
+        Train(steps=3)
+        >>> load_typed(Train, {"steps": "abc"}, "train")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        usplat_dr.config.ConfigError: train.steps='abc': expected int, got str (set in ...)
+    """
+    origins = getattr(data, "origins", None) if origins is None else origins
+    origins = origins or {}
+    prefix = f"{section}." if section else ""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{section or 'the configuration'} must be a mapping of keys to "
+                          f"values, got {data!r} (set in {_where(origins, section)})")
+    hints = typing.get_type_hints(cls)
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        key = prefix + str(unknown[0])
+        raise ConfigError(f"unknown key {key!r} (set in {_where(origins, key)}); "
+                          f"{section or 'the top level'} knows {sorted(known)}")
+    return cls(**{k: _typed_value(hints[k], v, prefix + k, origins) for k, v in data.items()})
 
 
 def check_keys(section: dict, known: set[str], where: str) -> None:

@@ -45,11 +45,38 @@ def test_render_demo_writes_images(tmp_path):
     assert 0 < (alpha > 128).mean() < 1  # foreground and sky
 
 
-def test_cli_rejects_bad_arguments():
-    with pytest.raises(SystemExit):
-        main(["render-demo", "--size", "0"])
-    with pytest.raises(SystemExit):
-        main(["no-such-command"])
+@pytest.mark.parametrize("argv, message", [
+    (["render-demo", "--size", "0"], "--size: must be an integer >= 1, got '0'"),
+    (["synth", "--out", "x", "--frames", "2"], "--frames: must be an integer >= 3"),
+    (["fit", "--iterations", "zero"], "--iterations: must be an integer >= 1, got 'zero'"),
+    (["bench", "--prunes", "all,nope"], "--prunes: unknown ['nope']"),
+    (["bench", "--configs", "tiny:z"], "--configs: 'tiny:z' is not preset:variant"),
+    (["eval", "--checkpoint", "c", "--data", "d", "--device", "tpu"], "invalid choice: 'tpu'"),
+    (["no-such-command"], "invalid choice: 'no-such-command'"),
+])
+def test_cli_rejects_bad_arguments_as_usage_errors(argv, message, capsys):
+    # argparse checks types and choices: exit status 2 and the message, before any work
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_train_names_a_bad_config_value_and_where_it_was_set():
+    with pytest.raises(SystemExit, match=r"usplat train: train\.steps='abc': expected int.*"
+                                         r"command line \(train\.steps=abc\)"):
+        main(["train", "--config", "synthetic_tiny.yaml", "train.steps=abc"])
+
+
+def test_cli_commands_are_a_table_of_job_modules():
+    from usplat_dr.cli import COMMANDS
+
+    for name in ("demo", "bench", "train", "eval", "render", "export-ply", "render-demo",
+                 "fit", "synth", "params", "doctor"):
+        assert name in COMMANDS
+    with pytest.raises(SystemExit) as exit_info:  # each command's own arguments
+        main(["train", "--help"])
+    assert exit_info.value.code == 0
 
 
 @pytest.mark.parametrize("module", [
@@ -60,7 +87,7 @@ def test_cli_rejects_bad_arguments():
     "usplat_dr.data.synth.textures", "usplat_dr.data.synth.scenes",
     "usplat_dr.model.encoder.primary", "usplat_dr.model.sh_rotation",
     "usplat_dr.model.hypernet.resnet", "usplat_dr.jobs.report", "usplat_dr.jobs.arguments",
-    "usplat_dr.data.types"])
+    "usplat_dr.data.types", "usplat_dr.config"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module))
     assert result.attempted > 0 and result.failed == 0

@@ -1,6 +1,7 @@
 """Training: overfitting one scene, exact resume, stopping on signals and on non-finite steps,
 distributed data parallel (2 gloo ranks) against one process on the combined batch, configs."""
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -16,6 +17,7 @@ from usplat_dr.data.synth import synthesize
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.lpips import LPIPSWeightsMissing
 from usplat_dr.training import Trainer, TrainingStopped
+from usplat_dr.training.config import RootCfg
 
 CONFIGS = Path(__file__).parents[2] / "usplat_dr" / "configs"
 pytestmark = pytest.mark.usefixtures("restore_threads")
@@ -49,7 +51,7 @@ def params(model) -> dict:
 def test_config_composition_and_errors(tmp_path):
     cfg = load_config([CONFIGS / "finetune_mvsplat.yaml"], ["optimizer.lr=3e-6",
                                                              "train.steps=10"])
-    assert cfg["optimizer"]["lr"] == 3e-6 and cfg["optimizer"]["gradient_clip"] == 0.5
+    assert cfg["optimizer"]["lr"] == 3e-6 and cfg["optimizer"].get("gradient_clip") is None
     assert cfg["model"] == {"preset": "paper", "variant": "full",
                             "init_mvsplat": "checkpoints/re10k.ckpt"}
     assert cfg["dataset"]["name"] == "re10k" and cfg["train"]["steps"] == 10
@@ -69,6 +71,31 @@ def test_config_composition_and_errors(tmp_path):
     assert mine["model"]["preset"] == "tiny"  # from the packaged model/tiny.yaml
     with pytest.raises(ConfigError, match=r"not a packaged config.*synthetic_tiny_depth\.yaml"):
         load_config(["train/configs/synthetic_tiny.yaml"])  # the old location
+
+
+def test_typed_config_has_one_source_of_defaults_and_names_bad_keys(tmp_path):
+    assert load_config(["base.yaml"]) == {}  # it documents the recipe and sets nothing
+    assert RootCfg.load({}) == RootCfg()  # the recipe: the dataclasses' defaults only
+    recipe = RootCfg()
+    assert (recipe.train.steps, recipe.train.checkpoint_every, recipe.train.validate_every) == (
+        300_000, 1000, 5000)
+    assert (recipe.optimizer.lr, recipe.optimizer.gradient_clip, recipe.loss.lpips,
+            recipe.loss.lpips_after_step, recipe.optimizer.hyper_lr_scale) == (
+        2e-4, 0.5, 0.05, 150_000, 1.0)
+    typed = RootCfg.load(load_config(["finetune_mvsplat.yaml"], ["train.steps=10"]))
+    assert typed.train.steps == 10 and typed.optimizer.lr == 1e-6
+    assert typed.train.validate_every == 5000 and typed.model.variant == "full"
+    assert isinstance(RootCfg.load({"optimizer": {"lr": 1}}).optimizer.lr, float)
+    (tmp_path / "mine.yaml").write_text("include: [synthetic_tiny.yaml]\ntrain: {stepz: 3}\n")
+    with pytest.raises(ConfigError, match=r"unknown key 'train\.stepz' \(set in .*mine\.yaml"):
+        RootCfg.load(load_config([tmp_path / "mine.yaml"]))
+    with pytest.raises(ConfigError, match=r"train\.steps='abc': expected int.*"
+                                          r"command line \(train\.steps=abc\)"):
+        RootCfg.load(load_config(["synthetic_tiny.yaml"], ["train.steps=abc"]))
+    with pytest.raises(ConfigError, match=r"unknown key 'learning_rate'.*command line"):
+        RootCfg.load(load_config(["synthetic_tiny.yaml"], ["learning_rate=1"]))
+    with pytest.raises(ConfigError, match=r"loss\.depth=True: expected float"):
+        RootCfg.load({"loss": {"depth": True}})
 
 
 def test_bad_sections_and_missing_lpips_files_stop_at_start(synth_root, tmp_path):
@@ -110,7 +137,9 @@ def test_resume_continues_exactly(synth_root, tmp_path):
     straight = Trainer(config(synth_root, tmp_path / "a", 6, *opts))
     straight.fit()
     first = Trainer(config(synth_root, tmp_path / "b", 6, *opts))
-    first.tcfg["steps"] = 3  # a run killed right after its step-3 checkpoint
+    # a run killed right after its step-3 checkpoint (its scheduler still planned 6 steps)
+    first.config = dataclasses.replace(first.config,
+                                       train=dataclasses.replace(first.config.train, steps=3))
     first.fit()
     resumed = Trainer(config(synth_root, tmp_path / "b", 6, *opts))
     assert resumed.resume() and resumed.step == 3

@@ -4,8 +4,9 @@ under ``torchrun`` (DistributedDataParallel)."""
 import argparse
 import json
 
-from usplat_dr.config import load_config
+from usplat_dr.config import ConfigError, load_config
 from usplat_dr.training import train
+from usplat_dr.training.config import RootCfg
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,7 +21,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = load_config(args.config or ["synthetic_tiny.yaml"], args.overrides)
+    try:  # a bad file, key or value: one line naming it, before anything is built
+        cfg = RootCfg.load(load_config(args.config or ["synthetic_tiny.yaml"], args.overrides))
+    except ConfigError as e:
+        raise SystemExit(f"usplat train: {e}") from None
     result = train(cfg, resume=args.resume)
     print(json.dumps(result))
     return 0

@@ -1,35 +1,117 @@
-"""The training configuration's sections turned into objects: the model a ``model`` section
-describes (the datasets' ``dataset_from_section`` lives in ``usplat_dr.data.dataset``)."""
+"""The typed training configuration: one dataclass per section of the YAML configs, whose
+defaults are the field's recipe (MVSplat / pixelSplat: Adam, peak lr 2e-4 on a one-cycle cosine
+schedule, gradient clipping at 0.5, MSE + 0.05 LPIPS after step 150,000, 300,000 steps). These
+defaults are the only ones: ``usplat_dr/configs/base.yaml`` documents them and sets nothing.
+
+``RootCfg.load(cfg)`` checks a loaded config (``usplat_dr.config.load_config``): an unknown key
+or a value of the wrong type is a ``ConfigError`` naming the key and the file or command-line
+override that set it. The ``dataset`` section stays a mapping, checked by
+``usplat_dr.data.dataset.dataset_from_section`` (its keys depend on the view sampler).
+"""
 
 import dataclasses
+from dataclasses import dataclass, field
 
-from usplat_dr.config import ConfigError, check_keys
+from usplat_dr.config import ConfigError, load_typed
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.uniquesplat import PRESETS, UniqueSplatCfg
 from usplat_dr.training.checkpoints import init_from_checkpoint
 
-SECTIONS = {"seed", "output_dir", "device", "threads", "model", "dataset", "data_loader",
-            "optimizer", "loss", "train", "name"}
+
+@dataclass(frozen=True)
+class TrainCfg:
+    """The ``train`` section: length and cadence of a run."""
+
+    steps: int = 300_000  # optimiser steps (the field's recipe)
+    checkpoint_every: int = 1000  # steps between checkpoints (also at the end and on signals)
+    validate_every: int = 5000  # steps between validation renders
+    log_every: int = 10  # steps between rows of metrics.csv
+    max_nonfinite: int = 20  # non-finite steps in a row that stop the run
+    progress: bool = True  # a progress bar
 
 
-def model_from_config(mcfg: dict) -> UniqueSplat:
+@dataclass(frozen=True)
+class OptimizerCfg:
+    """The ``optimizer`` section: Adam on a one-cycle cosine schedule."""
+
+    lr: float = 2e-4  # peak of the one-cycle cosine schedule
+    warm_up_fraction: float = 0.01
+    gradient_clip: float = 0.5  # global norm
+    hyper_lr_scale: float = 1.0  # learning rate of the hypernetwork branches over lr (1: one rate)
+
+
+@dataclass(frozen=True)
+class LossCfg:
+    """The ``loss`` section: MSE, LPIPS after a step, optional depth supervision."""
+
+    mse: float = 1.0
+    lpips: float = 0.05
+    lpips_after_step: int = 150_000  # the paper: LPIPS joins after 150k steps
+    lpips_vgg: str | None = None  # torchvision vgg16-397923af.pth (needed once LPIPS is on)
+    lpips_lin: str | None = None  # lpips/weights/v0.1/vgg.pth from the lpips pip package
+    depth: float = 0.0  # weight of the log-depth L1 on the context views (docs/learning.md)
+    depth_until_step: int | None = None  # the depth term ends here (None: never)
+
+
+@dataclass(frozen=True)
+class DataLoaderCfg:
+    """The ``data_loader`` section (torch's DataLoader)."""
+
+    batch_size: int = 1
+    num_workers: int = 0
+
+
+@dataclass(frozen=True)
+class ModelSection:
+    """The ``model`` section: which UniqueSplat, and the weights it starts from."""
+
+    preset: str = "tiny"  # usplat_dr.model.uniquesplat.PRESETS
+    variant: str = "full"  # baseline (a), agnostic (b), full (c)
+    overrides: dict = field(default_factory=dict)  # fields of the preset's UniqueSplatCfg
+    init_mvsplat: str | None = None  # an MVSplat checkpoint for the primary network
+    init_from: str | None = None  # a usplat checkpoint of (a): the paper's protocol
+
+
+@dataclass(frozen=True)
+class RootCfg:
+    """A whole training configuration (the YAML file's top level)."""
+
+    seed: int = 0
+    device: str = "cpu"  # cuda: torch on the GPU and the rasteriser on Dr.Jit's CUDA backend
+    output_dir: str = "outputs/train"
+    threads: int | None = None  # torch and Dr.Jit threads per process (None: cores / ranks)
+    name: str | None = None  # a label for the run
+    model: ModelSection = field(default_factory=ModelSection)
+    dataset: dict = field(default_factory=dict)  # checked by dataset_from_section
+    data_loader: DataLoaderCfg = field(default_factory=DataLoaderCfg)
+    optimizer: OptimizerCfg = field(default_factory=OptimizerCfg)
+    loss: LossCfg = field(default_factory=LossCfg)
+    train: TrainCfg = field(default_factory=TrainCfg)
+
+    @classmethod
+    def load(cls, cfg: dict) -> "RootCfg":
+        """The typed configuration of a loaded config (its ``origins`` name the files)."""
+        return load_typed(cls, cfg)
+
+
+def model_from_config(section: ModelSection | dict) -> UniqueSplat:
     """The model a config's ``model`` section describes: a preset, a variant, overrides of the
     preset's fields, and weights to start from (``init_mvsplat``: an MVSplat checkpoint;
     ``init_from``: a usplat checkpoint of (a), the paper's protocol)."""
-    check_keys(mcfg, {"preset", "variant", "overrides", "init_mvsplat", "init_from"}, "model")
-    preset = mcfg.get("preset", "tiny")
-    if preset not in PRESETS:
-        raise ConfigError(f"model.preset must be one of {sorted(PRESETS)}, got {preset!r}")
-    base = dataclasses.asdict(PRESETS[preset])
-    over = dict(mcfg.get("overrides") or {})
+    if not isinstance(section, ModelSection):
+        section = load_typed(ModelSection, section, "model")
+    if section.preset not in PRESETS:
+        raise ConfigError(f"model.preset must be one of {sorted(PRESETS)}, got "
+                          f"{section.preset!r}")
+    base = dataclasses.asdict(PRESETS[section.preset])
+    over = dict(section.overrides)
     if "primary" in over:
         base["primary"] = {**base["primary"], **over.pop("primary")}
-    cfg = UniqueSplatCfg.from_dict({**base, **over, "variant": mcfg.get("variant", "full")})
-    model = UniqueSplat(cfg)
-    if mcfg.get("init_mvsplat") and mcfg.get("init_from"):
+    model = UniqueSplat(UniqueSplatCfg.from_dict({**base, **over, "variant": section.variant}))
+    if section.init_mvsplat and section.init_from:
         raise ConfigError("model.init_mvsplat and model.init_from both set: choose one")
-    if mcfg.get("init_mvsplat"):
-        model.load_mvsplat(mcfg["init_mvsplat"])
-    if mcfg.get("init_from"):
-        init_from_checkpoint(model, mcfg["init_from"])
+    if section.init_mvsplat:
+        model.load_mvsplat(section.init_mvsplat)
+    if section.init_from:
+        init_from_checkpoint(model, section.init_from)
     return model

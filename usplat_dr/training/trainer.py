@@ -10,6 +10,7 @@ of the last good state.
 """
 
 import csv
+import dataclasses
 import logging
 import math
 import os
@@ -24,7 +25,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, default_collate
 from tqdm import tqdm
 
-from usplat_dr.config import ConfigError, check_keys
+from usplat_dr.config import ConfigError
 from usplat_dr.data.dataset import ChunkDataset, dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import StepTracker
@@ -33,7 +34,7 @@ from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.evaluation.provenance import provenance
 from usplat_dr.geometry.cameras import pixel_centres
 from usplat_dr.io import torch_save
-from usplat_dr.training.config import SECTIONS, model_from_config
+from usplat_dr.training.config import RootCfg, model_from_config
 from usplat_dr.training.distributed import rng_state, set_rng_state, setup_distributed
 
 log = logging.getLogger(__name__)
@@ -84,9 +85,11 @@ class Batches:
         self._it = None
 
     def state(self) -> dict:
+        """The position in the stream, for a checkpoint."""
         return {"epoch": self.epoch, "taken": self.taken}
 
     def restore(self, state: dict) -> None:
+        """Go back to ``state()``'s position (the same batches follow)."""
         self.epoch, self.taken = state["epoch"], 0
         self.dataset.set_epoch(self.epoch)
         self._it = iter(self.loader)
@@ -95,6 +98,7 @@ class Batches:
             self.taken += 1
 
     def next(self) -> dict:
+        """The next batch, starting a new epoch when one ends."""
         for _ in range(2):
             if self._it is None:
                 self.dataset.set_epoch(self.epoch)
@@ -137,27 +141,22 @@ def depth_loss(aux: dict, depth: torch.Tensor, intrinsics: torch.Tensor) -> torc
 # ---- the trainer -------------------------------------------------------------------------------
 
 class Trainer:
-    def __init__(self, cfg: dict):
-        check_keys(cfg, SECTIONS, "the configuration's top level")
-        self.cfg = cfg
-        self.tcfg = {"steps": 1000, "checkpoint_every": 500, "validate_every": 500,
-                     "log_every": 10, "max_nonfinite": 20, "progress": True,
-                     **(cfg.get("train") or {})}
-        check_keys(self.tcfg, {"steps", "checkpoint_every", "validate_every", "log_every",
-                               "max_nonfinite", "progress"}, "train")
-        self.ocfg = {"lr": 2e-4, "warm_up_fraction": 0.01, "gradient_clip": 0.5,
-                     "hyper_lr_scale": 1.0, **(cfg.get("optimizer") or {})}
-        check_keys(self.ocfg, {"lr", "warm_up_fraction", "gradient_clip", "hyper_lr_scale"},
-                   "optimizer")
-        self.lcfg = {"mse": 1.0, "lpips": 0.05, "lpips_after_step": 150_000,
-                     "lpips_vgg": None, "lpips_lin": None, "depth": 0.0,
-                     "depth_until_step": None, **(cfg.get("loss") or {})}
-        check_keys(self.lcfg, {"mse", "lpips", "lpips_after_step", "lpips_vgg", "lpips_lin",
-                               "depth", "depth_until_step"}, "loss")
-        self.out = Path(cfg.get("output_dir", "outputs/train"))
-        self.rank, self.world, self.device = setup_distributed(cfg.get("device", "cpu"),
-                                                               cfg.get("threads"))
-        seed = int(cfg.get("seed", 0))
+    """The training loop of one process (one rank under ``torchrun``): ``fit()`` trains to
+    ``train.steps``, ``resume()`` continues from a checkpoint, ``train_step(batch)`` is one
+    optimiser step, ``validate()`` renders the validation scene.
+
+    ``cfg``: a loaded config (``usplat_dr.config.load_config``; checked into ``RootCfg``, so a
+    wrong key or type stops here naming it) or a ``RootCfg``. ``self.config`` is the typed
+    configuration; ``self.cfg`` the same as plain data with every default filled in (saved in
+    checkpoints: the whole recipe of the run)."""
+
+    def __init__(self, cfg: dict | RootCfg):
+        self.config = cfg if isinstance(cfg, RootCfg) else RootCfg.load(cfg)
+        self.cfg = dataclasses.asdict(self.config)
+        c = self.config
+        self.out = Path(c.output_dir)
+        self.rank, self.world, self.device = setup_distributed(c.device, c.threads)
+        seed = c.seed
         # The same seed on every rank: identical initial weights (DDP would broadcast rank 0's
         # anyway); the data is sharded by the dataset and its samplers have their own seeds.
         torch.manual_seed(seed)
@@ -165,30 +164,26 @@ class Trainer:
         random.seed(seed)
 
         self.lpips = None
-        if self.lcfg["lpips"] > 0 and self.lcfg["lpips_after_step"] < self.tcfg["steps"]:
+        if c.loss.lpips > 0 and c.loss.lpips_after_step < c.train.steps:
             # Stops at start-up (not at step 150k) when the files are missing.
-            self.lpips = LPIPS.from_files(self.lcfg["lpips_vgg"],
-                                          self.lcfg["lpips_lin"]).to(self.device)
+            self.lpips = LPIPS.from_files(c.loss.lpips_vgg, c.loss.lpips_lin).to(self.device)
 
-        self.model = model_from_config(cfg.get("model") or {}).to(self.device)
+        self.model = model_from_config(c.model).to(self.device)
         self.ddp = self.model
         if self.world > 1:
             self.ddp = torch.nn.parallel.DistributedDataParallel(self.model)
         self.step_tracker = StepTracker()
-        dl = {"batch_size": 1, "num_workers": 0, **(cfg.get("data_loader") or {})}
-        check_keys(dl, {"batch_size", "num_workers"}, "data_loader")
-        self.batches = Batches(dataset_from_section(cfg.get("dataset") or {}, "train",
-                                                   self.step_tracker),
-                               dl["batch_size"], dl["num_workers"])
-        groups = parameter_groups(self.model, self.ocfg["lr"], self.ocfg["hyper_lr_scale"])
-        self.optimizer = adam(groups, self.ocfg["lr"])
+        self.batches = Batches(dataset_from_section(c.dataset, "train", self.step_tracker),
+                               c.data_loader.batch_size, c.data_loader.num_workers)
+        groups = parameter_groups(self.model, c.optimizer.lr, c.optimizer.hyper_lr_scale)
+        self.optimizer = adam(groups, c.optimizer.lr)
         self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
-            self.optimizer, [g["lr"] for g in groups], total_steps=self.tcfg["steps"] + 10,
-            pct_start=self.ocfg["warm_up_fraction"], cycle_momentum=False,
+            self.optimizer, [g["lr"] for g in groups], total_steps=c.train.steps + 10,
+            pct_start=c.optimizer.warm_up_fraction, cycle_momentum=False,
             anneal_strategy="cos")
         # What this run ran on (data content hash, library versions, CPU, threads): saved
         # in every checkpoint, so runs that differ can be told apart.
-        self.provenance = (provenance((cfg.get("dataset") or {}).get("roots") or ())
+        self.provenance = (provenance(c.dataset.get("roots") or ())
                            if self.rank == 0 else {})
         self.step = 0
         self.skipped = 0
@@ -199,9 +194,11 @@ class Trainer:
     # -- checkpoints --
     @property
     def checkpoint_path(self) -> Path:
+        """``output_dir/checkpoints/last.ckpt``."""
         return self.out / "checkpoints" / "last.ckpt"
 
     def save(self) -> Path | None:
+        """Write the checkpoint atomically (rank 0; other ranks return ``None``)."""
         if self.rank != 0:
             return None
         state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
@@ -236,18 +233,19 @@ class Trainer:
         pred = out.color
         target = batch["target"]["image"].to(self.device)
         mse = (pred - target).square().mean()
-        loss = self.lcfg["mse"] * mse
+        lc = self.config.loss
+        loss = lc.mse * mse
         parts = {"mse": mse.item()}
-        until = self.lcfg["depth_until_step"]
-        if (self.lcfg["depth"] > 0 and (until is None or self.step < until)
+        until = lc.depth_until_step
+        if (lc.depth > 0 and (until is None or self.step < until)
                 and "depth" in batch["context"]):
             d = depth_loss(out.aux, batch["context"]["depth"].to(self.device),
                            batch["context"]["intrinsics"].to(self.device))
-            loss = loss + self.lcfg["depth"] * d
+            loss = loss + lc.depth * d
             parts["depth"] = d.item()
-        if self.lpips is not None and self.step >= self.lcfg["lpips_after_step"]:
+        if self.lpips is not None and self.step >= lc.lpips_after_step:
             lp = self.lpips(pred.flatten(0, 1), target.flatten(0, 1)).mean()
-            loss = loss + self.lcfg["lpips"] * lp
+            loss = loss + lc.lpips * lp
             parts["lpips"] = lp.item()
         return loss, parts
 
@@ -258,6 +256,7 @@ class Trainer:
                    "specific": "grad_specific", "view_embedding": "grad_view_features"}
 
     def group_grad_norms(self) -> dict:
+        """Gradient norms per part of the network (``GRAD_GROUPS``), before clipping."""
         groups: dict[str, list[torch.Tensor]] = {}
         for name, p in self.model.named_parameters():
             key = self.GRAD_GROUPS.get(name.split(".", 1)[0])
@@ -268,6 +267,8 @@ class Trainer:
         return dict(zip(norms, torch.stack(list(norms.values())).tolist())) if norms else {}
 
     def train_step(self, batch: dict) -> dict | None:
+        """One optimiser step on ``batch``: its statistics, or ``None`` when the loss or
+        gradient is not finite (the step is skipped and BatchNorm statistics restored)."""
         self.ddp.train()
         args = model_inputs(batch, self.device)
         target = batch["target"]["image"].to(self.device)
@@ -280,7 +281,7 @@ class Trainer:
         loss.backward()
         parts.update(self.group_grad_norms())
         norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(),
-                                              self.ocfg["gradient_clip"])
+                                              self.config.optimizer.gradient_clip)
         finite = torch.isfinite(loss) & torch.isfinite(norm)
         if self.world > 1:  # every rank takes the same decision
             flag = finite.float().to(self.device)
@@ -312,7 +313,10 @@ class Trainer:
         log.warning("signal %d: saving a checkpoint after this step", signum)
 
     def fit(self) -> dict:
-        steps = self.tcfg["steps"]
+        """Train to ``train.steps`` (or a signal), logging, checkpointing and validating
+        on the way; returns the last step's statistics."""
+        tc = self.config.train
+        steps = tc.steps
         self.out.mkdir(parents=True, exist_ok=True)
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         metrics_path = self.out / "metrics.csv"
@@ -337,7 +341,7 @@ class Trainer:
             except ImportError:
                 pass
         bar = None
-        if self.rank == 0 and self.tcfg["progress"]:
+        if self.rank == 0 and tc.progress:
             bar = tqdm(total=steps, initial=self.step, desc="train", dynamic_ncols=True)
         start, t0, last = self.step, time.perf_counter(), {}
         try:
@@ -347,7 +351,7 @@ class Trainer:
                 if self._val_batch is None:
                     self._val_batch = self.validation_batch(batch)
                 stats = self.train_step(batch)
-                if stats is None and self.consecutive_bad >= self.tcfg["max_nonfinite"]:
+                if stats is None and self.consecutive_bad >= tc.max_nonfinite:
                     path = self.save()
                     raise TrainingStopped(
                         f"{self.consecutive_bad} steps in a row had a non-finite loss or "
@@ -359,7 +363,7 @@ class Trainer:
                     last = stats
                 elapsed = time.perf_counter() - t0
                 rate = (self.step - start) / max(elapsed, 1e-9)
-                if writer is not None and (self.step % self.tcfg["log_every"] == 0
+                if writer is not None and (self.step % tc.log_every == 0
                                            or self.step == steps) and last:
                     writer.writerow({"step": self.step, **last, "skipped": self.skipped,
                                      "steps_per_s": rate, "time_s": elapsed})
@@ -372,9 +376,9 @@ class Trainer:
                     if last:
                         bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
                                         skipped=self.skipped)
-                if self.step % self.tcfg["checkpoint_every"] == 0 or self.step == steps:
+                if self.step % tc.checkpoint_every == 0 or self.step == steps:
                     self.save()
-                if self.rank == 0 and (self.step % self.tcfg["validate_every"] == 0
+                if self.rank == 0 and (self.step % tc.validate_every == 0
                                        or self.step == steps):
                     self.validate()
                 stop = self._stop_signal is not None
@@ -402,7 +406,7 @@ class Trainer:
         """The first example of the validation stage (the dataset's test folder) when there
         is one, else ``fallback`` (a training batch)."""
         try:
-            ds = dataset_from_section(self.cfg.get("dataset") or {}, "val")
+            ds = dataset_from_section(self.config.dataset, "val")
             example = next(iter(ds), None) if isinstance(ds, ChunkDataset) else None
         except (ValueError, FileNotFoundError, StopIteration):
             example = None
@@ -423,7 +427,9 @@ class Trainer:
                                self._val_batch, out)
 
 
-def train(cfg: dict, resume: bool = False) -> dict:
+def train(cfg: dict | RootCfg, resume: bool = False) -> dict:
+    """Train with ``cfg`` (see ``Trainer``), from the last checkpoint when ``resume`` and one
+    exists; returns the last step's statistics (``step``, ``skipped``, ``loss``, ``psnr``...)."""
     trainer = Trainer(cfg)
     if resume and not trainer.resume():
         log.info("no checkpoint in %s: starting from step 0", trainer.checkpoint_path.parent)
