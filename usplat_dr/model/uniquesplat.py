@@ -18,6 +18,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from usplat_dr.model.checkpoint import check_state_dict, extract_state_dict, read_checkpoint
+from usplat_dr.model.decoder import DecoderSplatting
 from usplat_dr.model.encoder.primary import (
     PrimaryNetwork,
     PrimaryNetworkCfg,
@@ -33,7 +34,6 @@ from usplat_dr.model.hypernet.injection import adapter_layout, run_head, vb_layo
 from usplat_dr.model.hypernet.view_branch import ViewSpecificEmbedding
 from usplat_dr.model.types import Gaussians
 from usplat_dr.render.prune import PruneSettings
-from usplat_dr.render.prune import prune as prune_gaussians
 
 log = logging.getLogger(__name__)
 
@@ -146,9 +146,9 @@ class UniqueSplatOutput:
     gaussians: Gaussians
     num_targets: int
     per_target: bool
-    color: Tensor | None = None
-    alpha: Tensor | None = None
-    depth: Tensor | None = None
+    color: Float[Tensor, "b n 3 h w"] | None = None
+    alpha: Float[Tensor, "b n h w"] | None = None
+    depth: Float[Tensor, "b n h w"] | None = None
     aux: dict = field(default_factory=dict)
 
     def target(self, b: int, n: int) -> Gaussians:
@@ -373,31 +373,14 @@ class UniqueSplat(nn.Module):
                        target_near, target_far, image_shape: tuple[int, int],
                        background_color=None, settings=None, prune=None) -> None:
         """Render ``out``'s Gaussians for its targets at ``image_shape`` (any size: the
-        intrinsics are normalised) into ``out.color/alpha/depth``; ``forward(render=True)``
-        calls it at the context images' size. ``prune``: a ``PruneSettings`` or ``None``."""
-        from usplat_dr.render import RasterSettings, rasterize  # Dr.Jit on the first render
-
-        b, n = target_near.shape
-        g = out.gaussians
-        bg = (torch.zeros(b * n, 3, device=g.means.device) if background_color is None
-              else background_color.to(g.means).expand(b * n, 3))
-        ext, intr = target_extrinsics.flatten(0, 1), target_intrinsics.flatten(0, 1)
-        near = target_near.flatten()
-        gauss = (g.means, g.covariances, g.harmonics, g.opacities)
-        if prune is not None:
-            if torch.is_grad_enabled() and g.means.requires_grad:
-                raise ValueError("prune works at inference only: run under torch.no_grad() "
-                                 "or pass prune=None")
-            p = prune_gaussians(ext, intr, near, image_shape, *gauss, prune)
-            gauss = (p.means, p.covariances, p.harmonics, p.opacities)
-            out.aux["rendered"] = p.counts.view(b, n)
-        else:
-            out.aux["rendered"] = torch.full((b, n), len(g), device=g.means.device)
-        r = rasterize(ext, intr, near, target_far.flatten(), image_shape, bg, *gauss,
-                      settings or RasterSettings(sh_basis="mvsplat"))
-        out.color = r.color.unflatten(0, (b, n))
-        out.alpha = r.alpha.unflatten(0, (b, n))
-        out.depth = r.depth.unflatten(0, (b, n))
+        intrinsics are normalised) into ``out.color/alpha/depth`` and ``out.aux["rendered"]``
+        with the decoder (``usplat_dr.model.decoder``); ``forward(render=True)`` calls it at
+        the context images' size. ``prune``: a ``PruneSettings`` or ``None``."""
+        r = DecoderSplatting(settings).forward(out.gaussians, target_extrinsics,
+                                               target_intrinsics, target_near, target_far,
+                                               image_shape, background_color, prune)
+        out.color, out.alpha, out.depth = r.color, r.alpha, r.depth
+        out.aux["rendered"] = r.rendered
 
     # ---- reporting ----------------------------------------------------------------------
 
