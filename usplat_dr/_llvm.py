@@ -5,7 +5,7 @@ Dr.Jit 1.5 reads ``DRJIT_LIBLLVM_PATH`` once, when ``drjit`` is first imported (
 natural-sort last file, so which libLLVM wins depends on which packages happen to be installed.
 That matters: libLLVM 14 is refused, and 15 and 16 abort the whole process (SIGABRT, "LLVM ERROR:
 Cannot select ... fminimum") in any kernel with a min/max. 19 and 22 are known to work
-(``../shared/reference/drjit_notes.md``, pitfall 1). This module has no third-party imports.
+(``docs/rasteriser_notes.md``, "libLLVM"). This module has no third-party imports.
 """
 
 import glob

@@ -277,8 +277,9 @@ def test_inference_culling_keeps_the_renders():
 
 
 def test_encoder_and_agnostic_weights_run_once_per_scene_whatever_the_targets():
-    """The issue's 'no per-target recomputation': the backbone, the cost-volume U-Net and
-    H_a run once per forward pass for 1 or 5 targets (counted with forward hooks)."""
+    """No per-target recomputation (README, "UniqueSplat: Gaussians per target view"): the
+    backbone, the cost-volume U-Net and H_a run once per forward pass for 1 or 5 targets
+    (counted with forward hooks)."""
     model = UniqueSplat.from_preset("tiny", variant="full").eval()
     calls = {"backbone": 0, "agnostic": 0, "depth_unet": 0}
     model.primary.backbone.register_forward_hook(

@@ -18,7 +18,7 @@ ROOT = Path(__file__).parents[2] / "checkpoints"
 MANIFEST = json.loads((ROOT / "manifest.json").read_text())
 KEYS = {"name", "preset", "variant", "file", "sha256", "train_command", "data", "steps",
         "metrics"}
-#: The issue's budget for shipped weights.
+#: The budget for shipped weights (they live in the repository and the wheel).
 MAX_BYTES = 25 * 10**6
 
 

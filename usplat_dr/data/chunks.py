@@ -1,4 +1,5 @@
-"""The pixelSplat chunk format, read and written exactly (MVSplat facts, section 4).
+"""The pixelSplat chunk format, read and written exactly (docs/field_protocol.md,
+"Data").
 
 A dataset root holds one folder per stage (``train``, ``test``); each holds ``NNNNNN.torch``
 chunks and ``index.json`` (scene key -> chunk file name relative to the stage folder). A chunk

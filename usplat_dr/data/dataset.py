@@ -69,7 +69,7 @@ class DatasetCfg:
     seed: int = 1234
 
 
-# MVSplat facts, sections 3-4: RE10K and ACID near 1 / far 100 with 360x640 JPEGs; DTU near
+# docs/field_protocol.md, "Data": RE10K and ACID near 1 / far 100 with 360x640 JPEGs; DTU near
 # 2.125 / far 4.525 (depth 425-905 scaled by 1/200), PNGs of any shape; synthetic sets carry
 # per-scene bounds.
 PRESETS = {

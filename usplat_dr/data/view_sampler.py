@@ -1,6 +1,7 @@
 """View samplers: which frames of a scene become context and target views.
 
-Behaviour follows pixelSplat/MVSplat (``src/dataset/view_sampler``; MVSplat facts, section 4).
+Behaviour follows pixelSplat/MVSplat (``src/dataset/view_sampler``; docs/field_protocol.md,
+"Data").
 A sampler raises ``ViewSamplingError`` when a scene cannot give an example (too few frames, no
 entry in the evaluation index); the dataset counts such scenes and moves on.
 """

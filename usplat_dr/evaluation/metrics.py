@@ -1,4 +1,5 @@
-"""Image metrics with the field's protocol (MVSplat facts, section 6).
+"""Image metrics with the field's protocol (docs/field_protocol.md,
+"Evaluation").
 
 PSNR on images clipped to [0, 1]; SSIM through ``skimage.metrics.structural_similarity`` with
 the field's arguments (Gaussian window sigma 1.5, 11 taps, data range 1, per channel on CHW

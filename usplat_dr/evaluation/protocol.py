@@ -1,4 +1,4 @@
-"""Evaluation with the field's protocol (MVSplat facts, section 6): fixed context/target
+"""Evaluation with the field's protocol (docs/field_protocol.md, "Evaluation"): fixed context/target
 frames from an evaluation index, metrics per target view, the mean over a scene's targets,
 then the mean over scenes. PSNR on clipped images, SSIM with scikit-image (window 11,
 Gaussian weights, data range 1), LPIPS-VGG when its weight files are given (else reported as
@@ -56,6 +56,7 @@ def depth_metrics(pred_depth: torch.Tensor, alpha: torch.Tensor, gt: torch.Tenso
 
 
 def peak_memory_gib(device: torch.device) -> float:
+    """The process's peak memory so far: CUDA's allocator peak, or the peak RSS on CPU."""
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2**30
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20

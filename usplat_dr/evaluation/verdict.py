@@ -175,4 +175,5 @@ def chart(rows: list[Comparison], path: str | os.PathLike) -> Path:
 
 
 def as_dicts(rows: list[Comparison]) -> list[dict]:
+    """The comparisons as plain dicts (for JSON)."""
     return [{**asdict(r), "verdict": r.verdict} for r in rows]

@@ -58,8 +58,9 @@ PRUNES: dict[str, PruneSettings | None] = {
     "keep50%": PruneSettings(keep_fraction=0.5),
     "keep25%": PruneSettings(keep_fraction=0.25),
 }
-#: The issue's rules: pruning on by default where it costs < 0.05 dB; the demo's preset is
-#: the smallest configuration within 0.3 dB of the best.
+#: The decision rules (BENCHMARKS.md, "Speed against accuracy: `usplat bench`"): pruning on
+#: by default where it costs < 0.05 dB; the demo's preset is the smallest configuration within
+#: 0.3 dB of the best.
 SAFE_PRUNE_DB = 0.05
 PRESET_WITHIN_DB = 0.3
 
@@ -254,7 +255,7 @@ def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes
 
 
 def choose(rows: list[dict], model_size: int) -> dict:
-    """The issue's two decisions from the measured rows."""
+    """The two decisions (see ``SAFE_PRUNE_DB``, ``PRESET_WITHIN_DB``) from the measured rows."""
     base = [r for r in rows if r["render_size"] == model_size and r["prune"] == "all"]
     best = max(base, key=lambda r: r["psnr"])
     within = [r for r in base if r["psnr"] >= best["psnr"] - PRESET_WITHIN_DB]

@@ -161,7 +161,8 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     k = dr.arange(UInt32, num_pairs) - dr.gather(UInt32, begin, owner)
     gx0 = dr.gather(UInt32, x0, gid)
     gy0 = dr.gather(UInt32, y0, gid)
-    # Guarded divisor: masked tail lanes of a packet may read 0 and trap (notes, pitfall 2).
+    # Guarded divisor: masked tail lanes of a packet may read 0 and trap
+    # (docs/rasteriser_notes.md, "Integer division in kernels").
     w = dr.maximum(dr.gather(UInt32, x1, gid) - gx0, 1)
     row = k // w
     tx = gx0 + (k - row * w)

@@ -13,7 +13,8 @@ Backward (back to front from each pixel's last composited Gaussian, T recovered 
 ``dA/dalpha_k = T_final / (1 - alpha_k)``; then the chain rule through the clamp (zero where it is
 active, unless ``clamp_gradient == "reference"``), ``exp`` and the quadratic form. Gradients are
 scatter-added per Gaussian; all 16 lanes of a packet walk the same list position so every scatter
-of an iteration targets one Gaussian (notes, pitfall 7).
+of an iteration targets one Gaussian (docs/rasteriser_notes.md, "Scatter
+contention").
 """
 
 import sys

@@ -219,7 +219,8 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     batch = lane // dr.maximum(dr.opaque(UInt32, g), 1)
     # The adjoint of a gather is a scatter-add into the input's gradient. ReduceMode.Local keeps
     # that kernel independent of G: the default (Expand on LLVM) bakes the target size into the
-    # kernel and recompiles it for every new number of Gaussians (notes, pitfall 6).
+    # kernel and recompiles it for every new number of Gaussians (docs/rasteriser_notes.md,
+    # "Recompilation").
     def take(source, index):
         return dr.gather(Float, source, index, mode=dr.ReduceMode.Local)
 

@@ -1,7 +1,7 @@
 """Proj(F_c, P_c, P_t) of UniqueSplat's view-specific branch: context features gathered along
 each target ray's epipolar lines and fused by cross-view cosine correlation.
 
-Our reading of the paper (see ../shared/reference/uniquesplat_paper.md): for every pixel of a
+Our reading of the UniqueSplat paper (Song et al.; the choices are ours): for every pixel of a
 reduced target grid, the ray x(z) = o + z r (r = R_t K_t^-1 [u, v, 1], so z is the target
 camera's depth) is sampled at ``n`` depths between near and far (uniform in inverse depth, as
 MVSplat's candidates: uniform in depth would put almost every sample near ``far`` for RE10K's

@@ -1,7 +1,7 @@
 """UniqueSplat's view-specific branch up to the embedding: E_H (ResNet18) on the context
 images, Proj into each target view, phi -> e_s.
 
-Our reading where the paper is vague (../shared/reference/uniquesplat_paper.md):
+Our reading where the UniqueSplat paper (Song et al.) is vague:
 - F_c: the ResNet18 stages' outputs, each mapped to ``feature_dim`` channels by a 1x1 conv and
   resampled to the stride-8 grid (``layer2``'s), summed (a one-level feature pyramid: every
   stage used, fine enough for epipolar matching).
