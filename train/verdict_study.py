@@ -58,6 +58,8 @@ def run_one(args, variant: str, seed: int) -> dict:
         f"train.steps={steps}", f"optimizer.lr={args.lr}",
         f"optimizer.warm_up_fraction={args.warm_up}",
         f"optimizer.hyper_lr_scale={args.hyper_lr_scale}", "threads=1", "train.progress=false",
+        *([f"model.overrides.delta_init_std={args.delta_init_std}"]
+          if model_variant == "full" and args.delta_init_std else []),
         f"train.checkpoint_every={max(50, steps // 10)}", f"train.validate_every={steps}"])
     t0 = time.perf_counter()
     result = train(cfg, resume=True)
@@ -96,6 +98,9 @@ def main(argv=None) -> int:
     p.add_argument("--hyper-lr-scale", type=float, default=1.0,
                    help="learning rate of the hypernetwork branches over --lr "
                         "(optimizer.hyper_lr_scale; (a) has none)")
+    p.add_argument("--delta-init-std", type=float, default=0.0,
+                   help="(c)'s H_s initialisation (model.overrides.delta_init_std; 0: Delta W "
+                        "starts at exactly 0)")
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--out", default="outputs/verdict")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")

@@ -145,6 +145,26 @@ def test_per_target_specialisation_and_gradients_reach_every_part():
     assert (g0.covariances - g1.covariances).abs().max() > 1e-5
 
 
+@pytest.mark.parametrize("init_std", [0.0, 1e-2])
+def test_delta_init_std_opens_the_view_specific_gradient_path(init_std):
+    # With Delta W = U V and U = 0 exactly, the gradient that reaches e_s (and the ResNet,
+    # Proj and phi behind it) is proportional to U: exactly zero on the first step. A small
+    # random U (delta_init_std) gives it a non-zero gradient at once, at the price of
+    # starting near (not at) the primary network's output.
+    torch.manual_seed(0)
+    model = UniqueSplat.from_preset("tiny", variant="full", delta_init_std=init_std)
+    args = scene()
+    train_steps(model, args, 1, lr=0.0)  # one backward; lr 0 keeps the initial weights
+    resnet = sum(p.grad.norm() ** 2 for p in model.view_embedding.parameters()
+                 if p.grad is not None)
+    deltas = model.specific(torch.randn(3, model.cfg.embed_dim))
+    largest_u = max(d.u.abs().max() for d in deltas)
+    if init_std == 0:
+        assert resnet == 0 and largest_u == 0
+    else:
+        assert resnet > 0 and largest_u > 0
+
+
 def test_each_target_renders_its_own_gaussians():
     torch.manual_seed(1)
     model = UniqueSplat.from_preset("tiny", variant="full")

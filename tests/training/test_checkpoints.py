@@ -33,10 +33,14 @@ def test_manifest_lists_the_required_models_within_budget():
     assert all(KEYS <= set(e) for e in MANIFEST), [KEYS - set(e) for e in MANIFEST]
     assert sum((ROOT / e["file"]).stat().st_size for e in MANIFEST) <= MAX_BYTES
     by = {e["name"]: e for e in MANIFEST}
+    files = {e["file"] for e in MANIFEST}
     for e in MANIFEST:
-        if e["variant"] != "baseline" or e.get("init_from"):
-            # fine-tuned by the paper's protocol from the shipped (a)
+        if e["variant"] != "baseline" or e["name"].endswith("_continued"):
+            # (b), (c) and the control: fine-tuned by the paper's protocol from the shipped (a)
             assert Path(e["init_from"]).name == by["tiny_baseline"]["file"], e["name"]
+        elif e.get("init_from"):
+            # a staged (a): its ancestry starts at a shipped checkpoint
+            assert Path(e["init_from"]).name in files, e["name"]
 
 
 @pytest.mark.parametrize("entry", MANIFEST, ids=[e["name"] for e in MANIFEST])

@@ -71,6 +71,10 @@ class UniqueSplatCfg:
     # Delta W as a rank-r product per layer (None: a full Delta W per view; see
     # hypernet/hypernetwork.py for the cost of each)
     delta_rank: int | None = 16
+    # Standard deviation of the initial weights of H_s's last layer that make U (0: Delta W
+    # is exactly 0 and (c) starts exactly at (a); > 0: it starts close to (a) and the
+    # view-specific branch gets gradients from the first step; docs/learning.md)
+    delta_init_std: float = 0.0
     resnet_stages: int = 4  # ResNet18 stages used by E_H (4: all of it)
     resnet_weights: str | None = None  # torchvision resnet18 .pth file (ImageNet)
     feature_dim: int = 64  # channels of F_c
@@ -93,6 +97,8 @@ class UniqueSplatCfg:
         for name in ("embed_dim", "hyper_hidden", "feature_dim", "proj_samples", "proj_stride"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.delta_init_std >= 0:
+            raise ValueError(f"delta_init_std must be >= 0, got {self.delta_init_std}")
         if self.delta_rank is not None and self.delta_rank < 1:
             raise ValueError(f"delta_rank must be >= 1 or None (full Delta W), got "
                              f"{self.delta_rank}")
@@ -211,7 +217,8 @@ class UniqueSplat(nn.Module):
                 cfg.resnet_stages, cfg.feature_dim, cfg.proj_samples, cfg.proj_temperature,
                 cfg.proj_stride, cfg.phi_channels, cfg.embed_dim)
             self.specific = SpecificHypernetwork(self.specific_specs, cfg.embed_dim,
-                                                 cfg.hyper_hidden, cfg.delta_rank)
+                                                 cfg.hyper_hidden, cfg.delta_rank,
+                                                 cfg.delta_init_std)
             self.view_embedding.features.resnet.load_torchvision(cfg.resnet_weights)
 
     # ---- construction -------------------------------------------------------------------

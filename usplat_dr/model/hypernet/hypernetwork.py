@@ -152,17 +152,24 @@ class SpecificHypernetwork(nn.Module):
     """e_s [T, embed_dim] -> H_s -> Delta W per target (rank-``rank`` factors or full)."""
 
     def __init__(self, specs: tuple[ConvSpec, ...], embed_dim: int, hidden: int,
-                 rank: int | None):
+                 rank: int | None, init_std: float = 0.0):
         super().__init__()
         self.specs, self.rank = specs, rank
         sizes = [delta_sizes(s, rank) for s in specs]
         self.hyper = HyperMLP(embed_dim, hidden, sum(sum(d.values()) for d in sizes))
-        with torch.no_grad():  # Delta W = 0: zero rows for U / full and every bias delta
+        # Delta W = 0: zero rows for U / full and every bias delta. ``init_std`` > 0 draws the
+        # U (or full) rows' weights from N(0, init_std^2) instead (biases stay zero): Delta W
+        # then starts small but view-dependent, and the view-specific features get a
+        # gradient from the first step (with exact zeros it is proportional to U, ~0).
+        with torch.no_grad():
             i = 0
             for d in sizes:
                 for key, n in d.items():
                     if key != "v":
-                        self.hyper.last.weight[i:i + n].zero_()
+                        if init_std > 0:
+                            self.hyper.last.weight[i:i + n].normal_(0.0, init_std)
+                        else:
+                            self.hyper.last.weight[i:i + n].zero_()
                         self.hyper.last.bias[i:i + n].zero_()
                     i += n
 
