@@ -69,7 +69,9 @@ def parameter_groups(model: torch.nn.Module, lr: float | int,
     for name, p in model.named_parameters():
         (primary if name.split(".", 1)[0] == "primary" else hyper).append(p)
     if scale == 1.0 or not hyper:
-        return [{"params": primary + hyper, "lr": lr}]
+        # model.parameters()'s order: Adam's state is keyed by position, so checkpoints of
+        # runs before per-branch rates existed resume onto the same parameters
+        return [{"params": list(model.parameters()), "lr": lr}]
     return [{"params": primary, "lr": lr}, {"params": hyper, "lr": lr * scale}]
 
 
