@@ -6,7 +6,7 @@ Each configuration runs in its own process (so its peak RSS is its own), interle
 median wall time, process CPU time per forward and peak RSS. Baseline, measured in the same
 run: our network with the reference's plane sweep (``cost_volume_method="warp"`` with all 128
 candidates warped at once, i.e. the full warped feature volume the official code builds).
-The official code's numbers on the same kind of machine (mvsplat_facts.md sec. 2) are printed
+The official code's numbers on another 2-core machine (docs/mvsplat_notes.md sec. 2) are printed
 for reference: 4.9 s, 1.7 GiB.
 
     python train/bench_encoder.py [--rounds 2] [--repeats 3] [--size 256]
@@ -94,7 +94,7 @@ def main() -> None:
             print(f"{name:32s} wall {wall:5.2f} s ({wall / base_wall:4.2f}x)  cpu {cpu:5.2f} s  "
                   f"peak RSS {rss:4.2f} GiB ({rss / base_rss:4.2f}x)  "
                   f"max |means - baseline| {diff:.2g}")
-        print("official MVSplat code (mvsplat_facts.md, same kind of machine): 4.9 s, 1.7 GiB; "
+        print("official MVSplat code (docs/mvsplat_notes.md sec. 2, another 2-core machine): 4.9 s, 1.7 GiB; "
               "target <= 4.0 s and <= 1.0 GiB")
 
 

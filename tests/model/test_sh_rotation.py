@@ -29,7 +29,7 @@ def test_basis_is_orthonormal():
 
 
 def test_degrees_0_to_3_are_the_renderers_basis_up_to_sign():
-    # mvsplat_facts.md sec. 5: MVSplat's rasteriser basis is (-1)^i e3nn Y_i (except its
+    # docs/mvsplat_notes.md sec. 3: MVSplat's rasteriser basis is (-1)^i e3nn Y_i (except its
     # coefficient-14 anomaly) = the 3DGS basis at (z, x, y): an independent formula.
     d = unit(50, 2)
     x, y, z = d[:, 2], d[:, 0], d[:, 1]  # the 3DGS formulas at (z, x, y)

@@ -38,7 +38,7 @@ def sh_basis_3dgs(d: torch.Tensor, degree: int) -> torch.Tensor:
 
 def sh_basis_mvsplat(d: torch.Tensor, degree: int) -> torch.Tensor:
     """[..., (degree+1)^2] basis of diff-gaussian-rasterization-modified, from the table in
-    ``shared/reference/README.md`` sec. 5 (coefficient-14 anomaly included)."""
+    ``docs/mvsplat_notes.md`` sec. 3 (coefficient-14 anomaly included)."""
     x, y, z = d.unbind(-1)
     out = [torch.full_like(x, C0)]
     if degree >= 1:

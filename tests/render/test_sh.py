@@ -25,7 +25,7 @@ def test_mvsplat_basis_matches_official_fixture():
 
 
 def test_mvsplat_reference_table_matches_official_fixture():
-    # Guards the test reference itself (written from the table in shared/reference/README.md).
+    # Guards the test reference itself (written from the table in docs/mvsplat_notes.md sec. 3).
     ref = sh_basis_mvsplat(FIXTURE["sh_dirs"].double(), 3)
     torch.testing.assert_close(ref, FIXTURE["sh_basis"].double(), rtol=0, atol=1e-6)
 

@@ -1,7 +1,7 @@
 """MVSplat checkpoints in and out, strictly, with errors that say what does not match.
 
 Official checkpoints are PyTorch Lightning files whose ``state_dict`` keys all start with
-``encoder.`` (mvsplat_facts.md sec. 1); downstream projects strip that prefix, as we do.
+``encoder.`` (docs/mvsplat_notes.md sec. 1); downstream projects strip that prefix, as we do.
 """
 
 import dataclasses

@@ -317,8 +317,35 @@ class UniqueSplat(nn.Module):
         n = self.check_targets(b, target_intrinsics, target_extrinsics, target_near, target_far)
         _, _, depth = self.primary.encode(images, intrinsics, extrinsics, near, far,
                                           run_heads=False)
-        aux = {}
-        deltas = {}
+        weights, deltas, aux = self._target_weights(images, intrinsics, extrinsics,
+                                                    target_intrinsics, target_extrinsics,
+                                                    target_near, target_far)
+        nb = n if deltas else 1  # per-target work only where Delta W exists
+        depth_out = self._run_heads(depth, weights, deltas, near, far, v, b, nb)
+        gaussians = self._gaussians_per_target(depth_out, intrinsics, extrinsics, (h, w),
+                                               global_step, b, n, nb)
+        # The context views' depth maps [B, V, H, W] (the first target's where they differ
+        # per target; MVSplat's depth: the distance along the pixel's unit ray, not z): what
+        # a depth loss supervises. ``context_coarse_depths`` is the
+        # cost volume's estimate before refinement; unlike the final depths it is never
+        # clamped to [near, far], so it keeps a gradient where the final depth saturates.
+        aux["context_depths"] = depth_out.depths.view(b, nb, v, h, w, -1)[:, 0, ..., 0]
+        aux["context_coarse_depths"] = 1.0 / depth.disp_full.view(v, b, h, w).transpose(0, 1)
+        out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
+                                aux=aux)
+        if render:
+            self.render_targets(out, target_intrinsics, target_extrinsics, target_near,
+                                target_far, (h, w), background_color, settings, prune)
+        return out
+
+    def _target_weights(self, images, intrinsics, extrinsics, target_intrinsics,
+                        target_extrinsics, target_near, target_far
+                        ) -> tuple[dict, dict, dict]:
+        """The generated layers' weights: ``W`` (layer -> (weight, bias)) from the
+        view-agnostic branch, ``Delta W`` (layer -> per-target low-rank factors) from the
+        view-specific branch, and the branch's diagnostics (embedding, Proj's correlation
+        and weights) for ``out.aux``. Either dict is empty where its branch is absent."""
+        aux, deltas = {}, {}
         if self.specific is not None:
             e_s, proj_aux = self.view_embedding(images, intrinsics, extrinsics,
                                                 target_intrinsics, target_extrinsics,
@@ -328,8 +355,15 @@ class UniqueSplat(nn.Module):
             deltas = {s.name: d for s, d in zip(self.specific_specs,
                                                 self.specific(e_s.flatten(0, 1)))}
         weights = dict(zip(self.cfg.target_layers, self.agnostic_weights()))
+        return weights, deltas, aux
+
+    def _run_heads(self, depth, weights: dict, deltas: dict, near, far, v: int, b: int,
+                   nb: int):
+        """The depth predictor's two heads (``to_gaussians``, ``to_disparity``) with the
+        generated weights, for ``nb`` target batches (1: the same for every target), and
+        the depths they give: ``depth`` (the encoder's ``DepthOutputs``) with its raw
+        Gaussians, depths and densities replaced, laid out [(B nb), V, ...]."""
         dp = self.primary.depth_predictor
-        nb = n if deltas else 1  # per-target work only where Delta W exists
 
         def head(name: str, x: Tensor):
             layers = []
@@ -351,29 +385,24 @@ class UniqueSplat(nn.Module):
         disp_full = vb_layout(depth.disp_full, False, v, b, nb)
         depths, densities = dp.depths_from(vb_layout(disp, pt, v, b, nb), disp_full,
                                            near_t, far_t)
+        return dataclasses.replace(depth, raw_gaussians=raw, depths=depths,
+                                   densities=densities)
+
+    def _gaussians_per_target(self, depth_out, intrinsics, extrinsics,
+                              image_shape: tuple[int, int], global_step: int, b: int, n: int,
+                              nb: int) -> Gaussians:
+        """Gaussians [(B N), G, ...] from the heads' outputs: one set per target batch
+        entry, expanded to every target where they do not depend on it (``nb == 1``)."""
         ext_t = extrinsics.repeat_interleave(nb, 0)
         int_t = intrinsics.repeat_interleave(nb, 0)
-        depth_out = dataclasses.replace(depth, raw_gaussians=raw, depths=depths,
-                                        densities=densities)
-        gaussians = self.primary.gaussians_from(depth_out, ext_t, int_t, (h, w), global_step)
+        gaussians = self.primary.gaussians_from(depth_out, ext_t, int_t, image_shape,
+                                                global_step)
         if nb == 1 and n > 1:  # the same Gaussians for every target
             gaussians = Gaussians(**{
                 f.name: getattr(gaussians, f.name)[:, None].expand(
                     b, n, *getattr(gaussians, f.name).shape[1:]).flatten(0, 1)
                 for f in fields(Gaussians)})
-        # The context views' depth maps [B, V, H, W] (the first target's where they differ
-        # per target; MVSplat's depth: the distance along the pixel's unit ray, not z): what
-        # a depth loss supervises. ``context_coarse_depths`` is the
-        # cost volume's estimate before refinement; unlike the final depths it is never
-        # clamped to [near, far], so it keeps a gradient where the final depth saturates.
-        aux["context_depths"] = depths.view(b, nb, v, h, w, -1)[:, 0, ..., 0]
-        aux["context_coarse_depths"] = 1.0 / depth.disp_full.view(v, b, h, w).transpose(0, 1)
-        out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
-                                aux=aux)
-        if render:
-            self.render_targets(out, target_intrinsics, target_extrinsics, target_near,
-                                target_far, (h, w), background_color, settings, prune)
-        return out
+        return gaussians
 
     @staticmethod
     def render_targets(out: UniqueSplatOutput, target_intrinsics, target_extrinsics,

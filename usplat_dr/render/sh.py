@@ -52,7 +52,7 @@ def sh_basis(x, y, z, degree: int, basis: str = "3dgs") -> list:
     values = _standard_basis(z, x, y, degree)
     if degree >= 3:
         # ... except that its forward pass evaluates coefficient 14 as z (z^2 - x^2) where the
-        # permuted basis gives y (z^2 - x^2) (mvsplat_facts.md sec. 3, fixture `sh_basis`).
+        # permuted basis gives y (z^2 - x^2) (docs/mvsplat_notes.md sec. 3, fixture `sh_basis`).
         values[14] = C3[5] * z * (z * z - x * x)
     return values
 

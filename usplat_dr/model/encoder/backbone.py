@@ -1,7 +1,7 @@
 """Multi-view backbone: UniMatch's CNN and MVSplat's multi-view Swin-style transformer.
 
 Key names and arithmetic follow MVSplat (``src/model/encoder/backbone/``) and UniMatch, so
-official checkpoints and the UniMatch GMDepth backbone load strictly (mvsplat_facts.md sec. 1-2).
+official checkpoints and the UniMatch GMDepth backbone load strictly (docs/mvsplat_notes.md sec. 1).
 """
 
 import math
