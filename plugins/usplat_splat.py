@@ -63,98 +63,101 @@ works unchanged.
 """
 
 
-def _make_class():
-    class UsplatSplatIntegrator(mi.CppADIntegrator):
-        __doc__ = DOC
+class UsplatSplatMethods:
+    """The integrator's methods, independent of the Mitsuba variant (parameters: ``DOC``).
 
-        def __init__(self, props):
-            super().__init__(props)
-            bg = props.get("background", 0.0)
-            bg = np.broadcast_to(np.asarray(bg, dtype=np.float64).reshape(-1), (3,))
-            if not np.all(np.isfinite(bg)):
-                raise ValueError(f"usplat_splat: 'background' must be finite, got {bg}")
-            self.background = [float(v) for v in bg]
-            self.srgb_primitives = bool(props.get("srgb_primitives", True))
-            self.sh_basis = str(props.get("sh_basis", "3dgs"))
-            if self.sh_basis not in ("3dgs", "mvsplat"):
-                raise ValueError(f"usplat_splat: 'sh_basis' must be '3dgs' or 'mvsplat', got "
-                                 f"{self.sh_basis!r}")
-            tile = int(props.get("tile_size", 0))
-            if tile not in (0, 4, 8, 16):
-                raise ValueError(f"usplat_splat: 'tile_size' must be 0 (automatic), 4, 8 or "
-                                 f"16, got {tile}")
-            self.settings = RasterSettings(tile_size=tile or None, sh_basis=self.sh_basis)
+    Mitsuba binds ``mi.CppADIntegrator`` to the variant that is set, so
+    ``integrator_class()`` makes the class ``UsplatSplatIntegrator(mi.CppADIntegrator)``
+    once per variant with these methods copied in. (Not a mixin: nanobind's types accept a
+    single base, "nb_type_init(): invalid number of bases"; hence also no zero-argument
+    ``super()`` here.)"""
 
-        # ---- the image ----
-        def _image(self, scene, sensor):
-            from usplat_dr.render.pipeline import rasterize_drjit  # on first render (start-up)
+    def __init__(self, props):
+        mi.CppADIntegrator.__init__(self, props)
+        bg = props.get("background", 0.0)
+        bg = np.broadcast_to(np.asarray(bg, dtype=np.float64).reshape(-1), (3,))
+        if not np.all(np.isfinite(bg)):
+            raise ValueError(f"usplat_splat: 'background' must be finite, got {bg}")
+        self.background = [float(v) for v in bg]
+        self.srgb_primitives = bool(props.get("srgb_primitives", True))
+        self.sh_basis = str(props.get("sh_basis", "3dgs"))
+        if self.sh_basis not in ("3dgs", "mvsplat"):
+            raise ValueError(f"usplat_splat: 'sh_basis' must be '3dgs' or 'mvsplat', got "
+                             f"{self.sh_basis!r}")
+        tile = int(props.get("tile_size", 0))
+        if tile not in (0, 4, 8, 16):
+            raise ValueError(f"usplat_splat: 'tile_size' must be 0 (automatic), 4, 8 or "
+                             f"16, got {tile}")
+        self.settings = RasterSettings(tile_size=tile or None, sh_basis=self.sh_basis)
 
-            if isinstance(sensor, int):
-                sensor = scene.sensors()[sensor]
-            cam = sensor_camera(sensor)
-            h, w = cam["image_shape"]
-            shapes = [s for s in scene.shapes() if s.is_ellipsoids()]
-            g = ellipsoids_as_gaussians(shapes)
-            n, d = g["count"], g["sh_size"]
-            T = mi.TensorXf
-            args = (T(mi.Float(cam["extrinsics"].astype(np.float32).ravel()), shape=(1, 4, 4)),
-                    T(mi.Float(cam["intrinsics"].astype(np.float32).ravel()), shape=(1, 3, 3)),
-                    T(mi.Float([cam["near"]]), shape=(1,)), T(mi.Float([cam["far"]]), shape=(1,)),
-                    (h, w), T(mi.Float(self.background), shape=(1, 3)))
-            if n == 0:
-                gauss = (T(dr.zeros(mi.Float, 0), shape=(1, 0, 3)),
-                         T(dr.zeros(mi.Float, 0), shape=(1, 0, 3, 3)),
-                         T(dr.zeros(mi.Float, 0), shape=(1, 0, 3, 1)),
-                         T(dr.zeros(mi.Float, 0), shape=(1, 0)))
-            else:
-                gauss = (T(g["means"], shape=(1, n, 3)), T(g["covariances"], shape=(1, n, 3, 3)),
-                         T(g["sh"], shape=(1, n, 3, d)), T(g["opacities"], shape=(1, n)))
-            out = rasterize_drjit(*args, *gauss, settings=self.settings, check=False)
-            channels = sensor.film().base_channels_count()
-            color = out.color.array  # [3, H, W] (batch 1), channel-major
-            if self.srgb_primitives:
-                color = mi.math.srgb_to_linear(color)
-            planes = dr.concat([color, out.alpha.array]) if channels == 4 else color
-            c = 4 if channels == 4 else 3
-            lane = dr.arange(mi.UInt32, h * w * c)
-            src = (lane % c) * (h * w) + lane // c  # [H, W, C] from [C, H, W]
-            return mi.TensorXf(dr.gather(mi.Float, planes, src), shape=(h, w, c))
+    # ---- the image ----
+    def _image(self, scene, sensor):
+        from usplat_dr.render.pipeline import rasterize_drjit  # on first render (start-up)
 
-        def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-            if not develop:
-                raise ValueError("usplat_splat renders developed images only (develop=True)")
-            with dr.suspend_grad():
-                return self._image(scene, sensor)
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        cam = sensor_camera(sensor)
+        h, w = cam["image_shape"]
+        shapes = [s for s in scene.shapes() if s.is_ellipsoids()]
+        g = ellipsoids_as_gaussians(shapes)
+        n, d = g["count"], g["sh_size"]
+        T = mi.TensorXf
+        args = (T(mi.Float(cam["extrinsics"].astype(np.float32).ravel()), shape=(1, 4, 4)),
+                T(mi.Float(cam["intrinsics"].astype(np.float32).ravel()), shape=(1, 3, 3)),
+                T(mi.Float([cam["near"]]), shape=(1,)), T(mi.Float([cam["far"]]), shape=(1,)),
+                (h, w), T(mi.Float(self.background), shape=(1, 3)))
+        if n == 0:
+            gauss = (T(dr.zeros(mi.Float, 0), shape=(1, 0, 3)),
+                     T(dr.zeros(mi.Float, 0), shape=(1, 0, 3, 3)),
+                     T(dr.zeros(mi.Float, 0), shape=(1, 0, 3, 1)),
+                     T(dr.zeros(mi.Float, 0), shape=(1, 0)))
+        else:
+            gauss = (T(g["means"], shape=(1, n, 3)), T(g["covariances"], shape=(1, n, 3, 3)),
+                     T(g["sh"], shape=(1, n, 3, d)), T(g["opacities"], shape=(1, n)))
+        out = rasterize_drjit(*args, *gauss, settings=self.settings, check=False)
+        channels = sensor.film().base_channels_count()
+        color = out.color.array  # [3, H, W] (batch 1), channel-major
+        if self.srgb_primitives:
+            color = mi.math.srgb_to_linear(color)
+        planes = dr.concat([color, out.alpha.array]) if channels == 4 else color
+        c = 4 if channels == 4 else 3
+        lane = dr.arange(mi.UInt32, h * w * c)
+        src = (lane % c) * (h * w) + lane // c  # [H, W, C] from [C, H, W]
+        return mi.TensorXf(dr.gather(mi.Float, planes, src), shape=(h, w, c))
 
-        def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-            with dr.resume_grad():
-                image = self._image(scene, sensor)
-                dr.forward_to(image)
-                return dr.grad(image)
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not develop:
+            raise ValueError("usplat_splat renders developed images only (develop=True)")
+        with dr.suspend_grad():
+            return self._image(scene, sensor)
 
-        def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
-            with dr.resume_grad():
-                image = self._image(scene, sensor)
-                dr.backward_from(image * grad_in)
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        with dr.resume_grad():
+            image = self._image(scene, sensor)
+            dr.forward_to(image)
+            return dr.grad(image)
 
-        # ---- Mitsuba plugin conventions ----
-        def aov_names(self):
-            return []
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        with dr.resume_grad():
+            image = self._image(scene, sensor)
+            dr.backward_from(image * grad_in)
 
-        def traverse(self, callback):
-            callback.put("background", self.background, mi.ParamFlags.NonDifferentiable)
+    # ---- Mitsuba plugin conventions ----
+    def aov_names(self):
+        return []
 
-        def parameters_changed(self, keys):
-            self.background = [float(v) for v in np.broadcast_to(
-                np.asarray(self.background, dtype=np.float64).reshape(-1), (3,))]
+    def traverse(self, callback):
+        callback.put("background", self.background, mi.ParamFlags.NonDifferentiable)
 
-        def to_string(self):
-            return (f"UsplatSplatIntegrator[\n  background = {self.background},\n"
-                    f"  srgb_primitives = {self.srgb_primitives},\n"
-                    f"  sh_basis = {self.sh_basis!r},\n"
-                    f"  tile_size = {self.settings.tile_size or 'automatic'}\n]")
+    def parameters_changed(self, keys):
+        self.background = [float(v) for v in np.broadcast_to(
+            np.asarray(self.background, dtype=np.float64).reshape(-1), (3,))]
 
-    return UsplatSplatIntegrator
+    def to_string(self):
+        return (f"UsplatSplatIntegrator[\n  background = {self.background},\n"
+                f"  srgb_primitives = {self.srgb_primitives},\n"
+                f"  sh_basis = {self.sh_basis!r},\n"
+                f"  tile_size = {self.settings.tile_size or 'automatic'}\n]")
 
 
 _CLASSES: dict[str, type] = {}
@@ -170,7 +173,10 @@ def integrator_class():
         raise RuntimeError(f"usplat_splat needs a JIT variant ('llvm_ad_rgb' or "
                            f"'cuda_ad_rgb'), the current one is {variant!r}")
     if variant not in _CLASSES:
-        _CLASSES[variant] = _make_class()
+        methods = {k: v for k, v in vars(UsplatSplatMethods).items()
+                   if k not in ("__dict__", "__weakref__")}
+        _CLASSES[variant] = type("UsplatSplatIntegrator", (mi.CppADIntegrator,),
+                                 {**methods, "__doc__": DOC})
     return _CLASSES[variant]
 
 

@@ -94,8 +94,8 @@ def main() -> None:
             print(f"{name:32s} wall {wall:5.2f} s ({wall / base_wall:4.2f}x)  cpu {cpu:5.2f} s  "
                   f"peak RSS {rss:4.2f} GiB ({rss / base_rss:4.2f}x)  "
                   f"max |means - baseline| {diff:.2g}")
-        print("official MVSplat code (docs/mvsplat_notes.md sec. 2, another 2-core machine): 4.9 s, 1.7 GiB; "
-              "target <= 4.0 s and <= 1.0 GiB")
+        print("official MVSplat code (docs/mvsplat_notes.md sec. 2, another 2-core machine): "
+              "4.9 s, 1.7 GiB; target <= 4.0 s and <= 1.0 GiB")
 
 
 if __name__ == "__main__":
