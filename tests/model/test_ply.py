@@ -1,7 +1,10 @@
 """3DGS PLY export: the SH basis change is exact on fresh directions and in renders, files
 round-trip, and an independent reader (plyfile) sees the standard fields."""
 
+import re
+
 import numpy as np
+import pytest
 import torch
 
 from usplat_dr.model.ply import read_ply, sh_to_3dgs, write_ply
@@ -74,3 +77,81 @@ def test_ply_round_trip_and_independent_reader(tmp_path):
     eig = np.linalg.eigvalsh(g.covariances[0].double().numpy())
     s2 = np.sort(np.exp(2 * np.stack([v[f"scale_{i}"] for i in range(3)], 1)), 1)
     assert np.allclose(s2, eig, rtol=1e-4)
+
+
+def graphdeco_file(path, g: int, degree: int, extra: bool, seed: int = 0):
+    """A PLY as the graphdeco 3DGS code writes it (``GaussianModel.save_ply``), made with the
+    independent writer plyfile: SH degree ``degree`` (3 (degree+1)^2 - 3 f_rest properties),
+    optionally with properties other tools add (uchar colours, a double, an int)."""
+    import plyfile
+
+    rng = np.random.default_rng(seed)
+    n_rest = 3 * ((degree + 1) ** 2 - 1)
+    fields = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+              *[f"f_rest_{i}" for i in range(n_rest)], "opacity", "scale_0", "scale_1",
+              "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    dtype = [(f, "f4") for f in fields]
+    if extra:
+        dtype = dtype[:3] + [("red", "u1"), ("green", "u1"), ("blue", "u1")] + dtype[3:] + [
+            ("importance", "f8"), ("cluster", "i4")]
+    data = np.zeros(g, dtype=dtype)
+    for f in fields:
+        data[f] = rng.normal(size=g)
+    if extra:
+        data["red"] = rng.integers(0, 255, g)
+        data["importance"] = rng.normal(size=g)
+        data["cluster"] = rng.integers(-5, 5, g)
+    plyfile.PlyData([plyfile.PlyElement.describe(data, "vertex")]).write(str(path))
+    return data
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("extra", [False, True])
+def test_reads_graphdeco_files_of_every_sh_degree(tmp_path, degree, extra):
+    data = graphdeco_file(tmp_path / "g.ply", 20, degree, extra, seed=degree)
+    back = read_ply(tmp_path / "g.ply")
+    k = (degree + 1) ** 2
+    assert back["sh_degree"] == degree and back["harmonics"].shape == (20, 3, k)
+    # f_rest is channel-major: coefficient j >= 1 of channel c is f_rest_{c (k-1) + j-1}
+    for c in range(3):
+        assert np.array_equal(back["harmonics"][:, c, 0].numpy(), data[f"f_dc_{c}"])
+        for j in range(1, k):
+            assert np.array_equal(back["harmonics"][:, c, j].numpy(),
+                                  data[f"f_rest_{c * (k - 1) + j - 1}"])
+    assert np.array_equal(back["means"].numpy(), np.stack([data[a] for a in "xyz"], 1))
+    # the viewer's reading, in float64 from the stored values (float32 exp/sigmoid: ~1e-6)
+    s = np.exp(np.stack([data[f"scale_{i}"] for i in range(3)], 1).astype(np.float64))
+    assert np.allclose(back["scales"].numpy(), s, rtol=1e-6)
+    op = 1 / (1 + np.exp(-data["opacity"].astype(np.float64)))
+    assert np.allclose(back["opacities"].numpy(), op, atol=1e-6)
+    # covariance = R diag(s^2) R^T with R from the normalised wxyz quaternion (float64 here)
+    q = np.stack([data[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    r = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+                 1).reshape(-1, 3, 3)
+    cov = r @ (s[:, :, None] ** 2 * r.transpose(0, 2, 1))
+    # float32 products of values up to e^(2*3): relative 1e-5 of the largest entry
+    assert np.allclose(back["covariances"].numpy(), cov, rtol=1e-4,
+                       atol=1e-5 * np.abs(cov).max())
+
+
+def test_unreadable_plys_name_the_problem(tmp_path):
+    data = graphdeco_file(tmp_path / "g.ply", 5, 1, False)
+    raw = (tmp_path / "g.ply").read_bytes()
+    cases = {
+        "truncated": (raw[:-7], "truncated"),
+        "ascii": (raw.replace(b"binary_little_endian", b"ascii", 1), "binary_little_endian"),
+        "not a ply": (b"hello" + raw, "not a PLY"),
+        "missing opacity": (raw.replace(b"property float opacity", b"property float opacitx"),
+                            "missing vertex properties ['opacity']"),
+        "odd f_rest": (raw.replace(b"property float f_rest_8\n", b""), "f_rest"),
+        "list property": (raw.replace(b"property float nx", b"property list uchar int nx"),
+                          "list property"),
+    }
+    assert len(data) == 5
+    for name, (content, message) in cases.items():
+        (tmp_path / f"{name}.ply").write_bytes(content)
+        with pytest.raises(ValueError, match=re.escape(message)):
+            read_ply(tmp_path / f"{name}.ply")

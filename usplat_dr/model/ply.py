@@ -1,10 +1,11 @@
 """Gaussians in the standard 3DGS PLY layout (what common 3DGS viewers open), and back.
 
 Binary little-endian ``vertex`` elements with float32 properties ``x y z nx ny nz f_dc_0..2
-f_rest_0..44 opacity scale_0..2 rot_0..3``: opacity as a logit, log scales, unit quaternions
-w x y z (world frame), SH coefficients of degree <= 3 in the 3DGS basis, ``f_rest``
-channel-major (all of red's coefficients 1..15, then green's, then blue's), zero-padded to
-degree 3.
+f_rest_0..44 opacity scale_0..2 rot_0..3`` (the graphdeco layout): opacity as a logit, log
+scales, unit quaternions w x y z (world frame), SH coefficients of degree <= 3 in the 3DGS
+basis, ``f_rest`` channel-major (all of red's coefficients 1..15, then green's, then blue's),
+zero-padded to degree 3 by the writer. ``read_ply`` also takes SH degrees 0-2 (0, 9 or 24
+``f_rest`` properties) and ignores properties it does not use.
 
 The model predicts SH in MVSplat's basis (its modified rasteriser: the standard basis at the
 permuted direction (z, x, y), with coefficient 14 evaluated as z (z^2 - x^2)). Both span the
@@ -92,29 +93,91 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians, sh_basis: str = "mv
     return Path(path)
 
 
-def read_ply(path: str | os.PathLike) -> dict[str, Tensor]:
-    """A 3DGS PLY as tensors: ``means`` [G,3], ``covariances`` [G,3,3], ``harmonics``
-    [G,3,16] (3DGS basis), ``opacities`` [G], ``scales`` [G,3], ``rotations`` [G,4] (wxyz)."""
-    raw = Path(path).read_bytes()
-    end = raw.index(b"end_header\n") + len(b"end_header\n")
-    header = raw[:end].decode("ascii").splitlines()
+# PLY scalar types -> numpy little-endian dtypes (both spellings of the PLY specification)
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2",
+              "int16": "<i2", "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4",
+              "uint": "<u4", "uint32": "<u4", "float": "<f4", "float32": "<f4",
+              "double": "<f8", "float64": "<f8"}
+_REST_DEGREE = {0: 0, 9: 1, 24: 2, 45: 3}  # number of f_rest properties -> SH degree
+_REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+             "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def _vertex_layout(path, header: list[str]) -> tuple[np.dtype, int, int]:
+    """(the vertex element's record dtype, its count, the bytes of the elements before it)."""
     if header[:2] != ["ply", "format binary_little_endian 1.0"]:
-        raise ValueError(f"{path}: not a binary little-endian PLY")
-    names = [h.split()[2] for h in header if h.startswith("property float ")]
-    if len(names) != len([h for h in header if h.startswith("property")]):
-        raise ValueError(f"{path}: only float properties are supported")
-    count = int(next(h for h in header if h.startswith("element vertex")).split()[2])
-    data = np.frombuffer(raw[end:], dtype=[(k, "<f4") for k in names], count=count)
+        fmt = header[1] if len(header) > 1 else "nothing"
+        raise ValueError(f"{path}: a 3DGS PLY must be 'format binary_little_endian 1.0', "
+                         f"this file has {fmt!r} (convert it, e.g. with plyfile)")
+    elements: list[tuple[str, int, list]] = []
+    for line in header[2:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info", "end_header"):
+            continue
+        if words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property" and elements:
+            if words[1] == "list":
+                raise ValueError(f"{path}: element {elements[-1][0]!r} has a list property "
+                                 f"({line!r}); 3DGS files hold fixed-size records only")
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise ValueError(f"{path}: unknown property declaration {line!r}")
+            elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+        else:
+            raise ValueError(f"{path}: malformed header line {line!r}")
+    offset = 0
+    for name, count, props in elements:
+        dtype = np.dtype(props)
+        if name == "vertex":
+            return dtype, count, offset
+        offset += count * dtype.itemsize
+    raise ValueError(f"{path}: no 'vertex' element (not a point cloud)")
+
+
+def read_ply(path: str | os.PathLike) -> dict:
+    """A 3DGS PLY (graphdeco layout) as tensors: ``means`` [G,3], ``covariances``
+    [G,3,3], ``harmonics`` [G,3,(D+1)^2] (3DGS basis), ``opacities`` [G], ``scales`` [G,3],
+    ``rotations`` [G,4] (wxyz, as stored), and ``sh_degree`` D.
+
+    The SH degree D is inferred from the number of ``f_rest_*`` properties (0, 9, 24 or 45
+    for degree 0..3); properties other tools add (normals, colours, their own fields, of
+    any scalar type) are ignored; every property is read as float32."""
+    raw = Path(path).read_bytes()
+    marker = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply") or marker < 0:
+        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
+    end = marker + len(b"end_header\n")
+    try:
+        header = raw[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: the PLY header is not ASCII") from None
+    dtype, count, offset = _vertex_layout(path, header)
+    names = dtype.names
+    missing = [k for k in _REQUIRED if k not in names]
+    if missing:
+        raise ValueError(f"{path}: not a 3DGS PLY, missing vertex properties {missing}")
+    n_rest = sum(1 for k in names if k.startswith("f_rest_"))
+    if n_rest not in _REST_DEGREE or any(f"f_rest_{i}" not in names for i in range(n_rest)):
+        raise ValueError(f"{path}: {n_rest} f_rest_* properties; a 3DGS PLY has f_rest_0 .. "
+                         f"f_rest_(N-1) with N = 0, 9, 24 or 45 (SH degree 0..3)")
+    available = len(raw) - end - offset
+    if available < count * dtype.itemsize:
+        raise ValueError(f"{path}: truncated: the header declares {count} vertices "
+                         f"({count * dtype.itemsize} bytes), the file holds {max(available, 0)}")
+    data = np.frombuffer(raw, dtype=dtype, count=count, offset=end + offset)
 
     def col(*keys):
-        return torch.from_numpy(np.stack([data[k] for k in keys], 1).astype(np.float32))
+        stacked = np.stack([data[k] for k in keys], 1) if keys else np.zeros((count, 0))
+        return torch.from_numpy(stacked.astype(np.float32))
 
-    rest = col(*[f"f_rest_{i}" for i in range(REST)]).view(count, 3, 15)
+    degree = _REST_DEGREE[n_rest]
+    k = (degree + 1) ** 2
+    rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).view(count, 3, k - 1)
     harmonics = torch.cat([col("f_dc_0", "f_dc_1", "f_dc_2")[:, :, None], rest], 2)
     scales = col("scale_0", "scale_1", "scale_2").exp()
     wxyz = col("rot_0", "rot_1", "rot_2", "rot_3")
-    rot = quat_xyzw_to_matrix(torch.cat([wxyz[:, 1:], wxyz[:, :1]], 1))
+    rot = quat_xyzw_to_matrix(torch.cat([wxyz[:, 1:], wxyz[:, :1]], 1))  # divides out |q|
     cov = rot @ torch.diag_embed(scales.square()) @ rot.transpose(1, 2)
     return {"means": col("x", "y", "z"), "covariances": cov, "harmonics": harmonics,
             "opacities": torch.sigmoid(col("opacity")[:, 0]), "scales": scales,
-            "rotations": wxyz}
+            "rotations": wxyz, "sh_degree": degree}
