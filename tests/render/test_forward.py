@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from tests.render.helpers import max_err, render_both
+from tests.render.reference import render_ref
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.scenes import (
     GaussianScene,
@@ -70,6 +71,52 @@ def test_off_centre_principal_point(device):
     scene.intrinsics[:, 1, 2] = 0.65
     ours, ref = render_both(scene, device)
     assert_matches(ours, ref)
+
+
+def render_cuda_intrinsics(intrinsics: torch.Tensor) -> torch.Tensor:
+    """The camera ``render_cuda`` (pixelSplat/MVSplat) really renders with, in float64,
+    written from its code: ``get_fov`` unprojects the edge midpoints (0, 0.5), (1, 0.5),
+    (0.5, 0), (0.5, 1) with ``K^-1``, takes the angles between the normalised rays
+    (``acos``), and the rasteriser uses ``focal = size / (2 tan(fov / 2))`` with the
+    principal point at the image centre (its symmetric projection matrix)."""
+    k_inv = torch.linalg.inv(intrinsics.double())
+
+    def unit(u, v):
+        r = k_inv @ torch.tensor([u, v, 1.0], dtype=torch.float64)
+        return r / r.norm(dim=-1, keepdim=True)
+
+    fov_x = (unit(0, 0.5) * unit(1, 0.5)).sum(-1).acos()
+    fov_y = (unit(0.5, 0) * unit(0.5, 1)).sum(-1).acos()
+    out = torch.zeros_like(k_inv)
+    out[:, 0, 0] = 0.5 / (0.5 * fov_x).tan()  # normalised: (W / (2 tan)) / W
+    out[:, 1, 1] = 0.5 / (0.5 * fov_y).tan()
+    out[:, 0, 2] = out[:, 1, 2] = 0.5
+    out[:, 2, 2] = 1
+    return out
+
+
+def test_render_cuda_projection_ignores_the_principal_point_as_render_cuda_does(device):
+    scene = random_scene(150, 20, 28, batch=2, seed=12)
+    scene.intrinsics[:, 0, 2] = torch.tensor([0.3, 0.55])
+    scene.intrinsics[:, 1, 2] = torch.tensor([0.65, 0.45])
+    scene.intrinsics[1, 0, 1] = 0.05  # skew: get_fov's K^-1 sees it (our projection does not)
+    settings = RasterSettings(projection="render_cuda")
+    ours = rasterize(*scene.to(device=device).args(), settings=settings)
+    symmetric = scene.to(dtype=torch.float64)
+    symmetric.intrinsics = render_cuda_intrinsics(scene.intrinsics)
+    assert_matches(ours, render_ref(*symmetric.args()))
+    # ... and it really differs from the projection that honours cx, cy
+    exact = rasterize(*scene.to(device=device).args())
+    assert (exact.color - ours.color).abs().max() > 1e-2
+
+
+def test_render_cuda_projection_equals_intrinsics_for_a_centred_camera(device):
+    scene = random_scene(150, 20, 28, seed=13)  # cx = cy = 0.5, no skew
+    a = rasterize(*scene.to(device=device).args(),
+                  settings=RasterSettings(projection="render_cuda"))
+    b = rasterize(*scene.to(device=device).args())
+    # fx from tan(atan(0.5 / fx)): float32 rounding of the focal length, ~1e-7 relative
+    assert (a.color - b.color).abs().max() <= 1e-5 and (a.alpha - b.alpha).abs().max() <= 1e-5
 
 
 def test_follows_the_16x16_tile_cut(device):

@@ -89,8 +89,33 @@ def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_colo
     return dims
 
 
-def _cameras(mod, extrinsics, intrinsics, near, width: int, height: int):
-    """Per-image camera values (one lane per image), detached: no gradients reach the cameras."""
+def _render_cuda_tan_fov(Float, k, idx):
+    """``tan(fov / 2)`` per image as ``render_cuda`` derives it (pixelSplat's ``get_fov``):
+    fov_x is the angle between the rays ``K^-1 (0, 0.5, 1)`` and ``K^-1 (1, 0.5, 1)`` through
+    the left and right edge midpoints, fov_y the same for the top and bottom midpoints.
+    Computed as ``|l x r| / (|l| |r| + l . r)`` (= tan of half the angle, without acos)."""
+    m = [[dr.gather(Float, k, idx * 9 + (3 * i + j)) for j in range(3)] for i in range(3)]
+    # K^-1 p is proportional to adj(K) p; the common factor 1 / det(K) cancels in the angle.
+    adj = [[m[(j + 1) % 3][(i + 1) % 3] * m[(j + 2) % 3][(i + 2) % 3]
+            - m[(j + 1) % 3][(i + 2) % 3] * m[(j + 2) % 3][(i + 1) % 3] for j in range(3)]
+           for i in range(3)]
+
+    def ray(u, v):
+        return [adj[i][0] * u + adj[i][1] * v + adj[i][2] for i in range(3)]
+
+    def tan_half_angle(a, b):
+        cross = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+        dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+        return dr.norm(cross) / (dr.norm(a) * dr.norm(b) + dot)
+
+    return (tan_half_angle(ray(0.0, 0.5), ray(1.0, 0.5)),
+            tan_half_angle(ray(0.5, 0.0), ray(0.5, 1.0)))
+
+
+def _cameras(mod, extrinsics, intrinsics, near, width: int, height: int,
+             projection: str = "intrinsics"):
+    """Per-image camera values (one lane per image), detached: no gradients reach the cameras.
+    ``projection``: ``RasterSettings.projection``."""
     Float, UInt32 = mod.Float, mod.UInt32
     b = extrinsics.shape[0]
     idx = dr.arange(UInt32, b)
@@ -107,10 +132,15 @@ def _cameras(mod, extrinsics, intrinsics, near, width: int, height: int):
              for i in range(3)]
     # Image size as opaque scalars: as literals each new resolution would recompile kernels.
     w_f, h_f = dr.opaque(Float, float(width)), dr.opaque(Float, float(height))
-    fx = dr.gather(Float, k, idx * 9 + 0) * w_f  # intrinsics are normalised by W (row 0)
-    cx = dr.gather(Float, k, idx * 9 + 2) * w_f
-    fy = dr.gather(Float, k, idx * 9 + 4) * h_f  # ... and by H (row 1)
-    cy = dr.gather(Float, k, idx * 9 + 5) * h_f
+    if projection == "render_cuda":
+        tan_x, tan_y = _render_cuda_tan_fov(Float, k, idx)
+        fx, fy = w_f / (2.0 * tan_x), h_f / (2.0 * tan_y)  # focal_x = W / (2 tan(fov_x / 2))
+        cx, cy = 0.5 * w_f, 0.5 * h_f  # a symmetric frustum: the image centre
+    else:
+        fx = dr.gather(Float, k, idx * 9 + 0) * w_f  # intrinsics are normalised by W (row 0)
+        cx = dr.gather(Float, k, idx * 9 + 2) * w_f
+        fy = dr.gather(Float, k, idx * 9 + 4) * h_f  # ... and by H (row 1)
+        cy = dr.gather(Float, k, idx * 9 + 5) * h_f
     return Camera(w2c_r=w2c_r, w2c_t=w2c_t, fx=fx, fy=fy, cx=cx, cy=cy,
                   near=dr.detach(near.array), centre=t_c2w, width=w_f, height=h_f)
 
@@ -229,7 +259,8 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     coeffs = [[take(sh_coefficients.array, lane * (3 * d) + (c * d + i))
                for i in range(min(d, 16))] for c in range(3)]
     opac = take(opacities.array, lane)
-    cam = _gather_camera(_cameras(mod, extrinsics, intrinsics, near, width, height), batch)
+    cam = _gather_camera(_cameras(mod, extrinsics, intrinsics, near, width, height,
+                                  settings.projection), batch)
 
     # ---- Projection, colour and tile rectangles ----
     proj = project(xyz, cov6, opac, coeffs, cam, min(sh_degree_for(d), 3), settings.sh_basis)

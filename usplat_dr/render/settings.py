@@ -28,12 +28,22 @@ class RasterSettings:
     Parameter ``clamp_gradient`` (``"exact"`` or ``"reference"``): ``"exact"`` differentiates the
     forward function (zero gradient through an active ``alpha = 0.99`` clamp); ``"reference"``
     passes the gradient through the clamp as the 3DGS backward does.
+
+    Parameter ``projection`` (``"intrinsics"`` or ``"render_cuda"``): ``"intrinsics"`` projects
+    with the given intrinsics, principal point included (geometrically right).
+    ``"render_cuda"`` projects as pixelSplat/MVSplat's ``render_cuda`` does: it turns the
+    intrinsics into fields of view (``get_fov``: the angles between the rays through the
+    midpoints of opposite image edges), builds a symmetric projection from ``tan(fov / 2)``
+    and so puts the principal point at the image centre, whatever cx and cy are. The two
+    agree when cx = cy = 0.5 and there is no skew; use ``"render_cuda"`` to reproduce
+    official renders and numbers on data with an off-centre principal point.
     """
 
     tile_size: int | None = None
     opacity_cull: bool = True
     sh_basis: Literal["3dgs", "mvsplat"] = "3dgs"
     clamp_gradient: Literal["exact", "reference"] = "exact"
+    projection: Literal["intrinsics", "render_cuda"] = "intrinsics"
 
     def __post_init__(self):
         if self.tile_size not in (None, 4, 8, 16):
@@ -44,6 +54,9 @@ class RasterSettings:
             raise ValueError(
                 f"clamp_gradient must be 'exact' or 'reference', got {self.clamp_gradient!r}"
             )
+        if self.projection not in ("intrinsics", "render_cuda"):
+            raise ValueError(f"projection must be 'intrinsics' or 'render_cuda', got "
+                             f"{self.projection!r}")
 
     @staticmethod
     def reference() -> "RasterSettings":
