@@ -60,12 +60,37 @@ def test_evaluate_follows_the_protocol_and_writes_files(tmp_path):
     from torch.utils.data import default_collate
 
     batch = default_collate([example])
-    with torch.no_grad():
-        out = model.eval()(*model_inputs(batch, torch.device("cpu")))
+    with torch.no_grad():  # the exact model: evaluate prunes nothing unless asked
+        out = model.eval()(*model_inputs(batch, torch.device("cpu")), prune=None)
     per_target = psnr(out.color[0], batch["target"]["image"][0])
     assert float(rows[0]["psnr"]) == pytest.approx(per_target.mean().item(), rel=1e-5)
     assert (tmp_path / "eval" / "renders" / "standard" / f"{example['scene']}.png").is_file()
     saved = json.loads((tmp_path / "eval" / "summary.json").read_text())
     assert saved["parameters"] == sum(p.numel() for p in model.parameters())
+    assert saved["prune"] == "none" and saved["image_shape"] == [32, 32]
     with pytest.raises(FileNotFoundError, match="usplat train writes"):
         load_model(tmp_path / "missing.ckpt")
+
+
+def test_usplat_eval_defaults_to_the_checkpoints_image_shape_and_no_pruning(tmp_path):
+    from usplat_dr.cli import main
+    from usplat_dr.data.synth import synthesize
+    from usplat_dr.model import UniqueSplat
+
+    root = tmp_path / "data"
+    synthesize(root, scenes=1, frames=10, resolution=(48, 48), seed=4, spp=4, stage="test",
+               previews=0, progress=False, kinds=("indoor",))
+    torch.manual_seed(0)
+    model = UniqueSplat.from_preset("tiny", variant="baseline")
+    ckpt = tmp_path / "model.ckpt"  # a usplat checkpoint trained at 32 x 48 (H x W)
+    torch.save({"model": model.state_dict(), "model_config": model.cfg.to_dict(), "step": 7,
+                "config": {"dataset": {"image_shape": [32, 48]}}}, ckpt)
+    common = ["-q", "eval", "--checkpoint", str(ckpt), "--data", str(root), "--splits",
+              "standard"]
+    assert main([*common, "--out", str(tmp_path / "a")]) == 0
+    a = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert a["image_shape"] == [32, 48] and a["prune"] == "none"
+    assert main([*common, "--image-shape", "16", "16", "--prune", "--out",
+                 str(tmp_path / "b")]) == 0
+    b = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert b["image_shape"] == [16, 16] and b["prune"] == model.inference_prune.label()

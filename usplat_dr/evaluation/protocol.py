@@ -65,9 +65,12 @@ def peak_memory_gib(device: torch.device) -> float:
 @torch.no_grad()
 def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
              lpips=None, device: torch.device | str = "cpu", images_per_split: int = 4,
-             progress: bool = True, label: str = "") -> dict:
+             progress: bool = True, label: str = "", prune=None) -> dict:
     """Evaluate ``model`` on each split (``indices``: split name -> evaluation index JSON) of
-    ``dataset`` (a config section: name, roots, image_shape). Returns the summary."""
+    ``dataset`` (a config section: name, roots, image_shape). Returns the summary.
+
+    ``prune``: a ``PruneSettings`` applied per target before rendering, or ``None`` (the
+    default: the protocol's numbers come from the exact model); the summary records it."""
     device = torch.device(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -82,7 +85,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         for i, example in enumerate(ds):
             batch = default_collate([example])
             t0 = time.perf_counter()
-            result = model(*model_inputs(batch, device))
+            result = model(*model_inputs(batch, device), prune=prune)
             times.append(time.perf_counter() - t0)
             gt = batch["target"]["image"][0].to(device)
             pred = result.color[0]
@@ -116,7 +119,9 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     steady = times[1:] if len(times) > 1 else times  # the first scene warms up kernels
     summary.update(
         parameters=sum(p.numel() for p in model.parameters()),
-        variant=model.cfg.variant, time_per_scene_s=statistics.median(steady) if steady else None,
+        variant=model.cfg.variant, prune=prune.label() if prune is not None else "none",
+        image_shape=list(dataset.get("image_shape", ())),
+        time_per_scene_s=statistics.median(steady) if steady else None,
         peak_memory_gib=peak_memory_gib(device), device=str(device))
     fields = ["split", "scene", "targets", "psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1"]
     with open(out / "per_scene.csv", "w", newline="") as f:

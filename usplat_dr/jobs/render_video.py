@@ -15,7 +15,8 @@ from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.camera_paths import camera_path
 from usplat_dr.io.images import colorize_depth
 from usplat_dr.io.video import write_video
-from usplat_dr.training.checkpoints import load_model
+from usplat_dr.jobs.arguments import positive_int
+from usplat_dr.training.checkpoints import load_model, training_image_shape
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
 
@@ -28,15 +29,29 @@ def add_example_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
                    "standard split)")
     p.add_argument("--scene", help="scene key (default: the first of the index)")
-    p.add_argument("--image-shape", type=int, nargs=2, default=[256, 256], metavar=("H", "W"))
+    add_image_shape_argument(p)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+
+
+def add_image_shape_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--image-shape", type=positive_int, nargs=2, metavar=("H", "W"),
+                   help="the size images are cropped and resized to (default: the size the "
+                   "checkpoint was trained at)")
+
+
+def image_shape(args: argparse.Namespace) -> tuple[int, int]:
+    """``--image-shape``, or the checkpoint's training image shape (the dataset preset's
+    default, 256 x 256, for a checkpoint that records none)."""
+    if args.image_shape:
+        return tuple(args.image_shape)
+    return training_image_shape(args.checkpoint) or (256, 256)
 
 
 def one_example(args: argparse.Namespace) -> tuple:
     """The model and the example that ``add_example_arguments``' arguments name."""
     index = args.index or synthetic_indices(args.data, ["standard"])["standard"]
-    dataset = {"name": args.dataset, "roots": [args.data], "image_shape": args.image_shape}
     model, _ = load_model(args.checkpoint, args.device)
+    dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
     return model, load_example(dataset, index, args.scene)
 
 

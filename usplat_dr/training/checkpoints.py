@@ -34,6 +34,14 @@ def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"
     return model.to(device).eval(), state.get("step", 0)
 
 
+def training_image_shape(checkpoint: str | os.PathLike) -> tuple[int, int] | None:
+    """The (H, W) a usplat checkpoint was trained at (its config's ``dataset.image_shape``),
+    or ``None`` when the checkpoint does not record one."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    shape = state.get("config", {}).get("dataset", {}).get("image_shape")
+    return (int(shape[0]), int(shape[1])) if shape else None
+
+
 def load_models(runs: dict, device) -> dict:
     """``{key: model}`` from ``{key: run folder}`` (each run's ``checkpoints/last.ckpt``)."""
     return {key: load_model(run / "checkpoints" / "last.ckpt", device)[0]
