@@ -43,7 +43,7 @@ def look_at(
     return c2w
 
 
-def pixel_centres(h: int, w: int, device=None) -> Float[Tensor, "hw 2"]:
+def pixel_centres(h: int, w: int, device=None, dtype=torch.float32) -> Float[Tensor, "hw 2"]:
     """Normalised image coordinates ((x + 0.5) / w, (y + 0.5) / h) of the pixel centres of an
     h x w grid, raster order (pixelSplat's ``sample_image_grid``).
 
@@ -51,8 +51,9 @@ def pixel_centres(h: int, w: int, device=None) -> Float[Tensor, "hw 2"]:
         >>> pixel_centres(1, 2).tolist()
         [[0.25, 0.5], [0.75, 0.5]]
     """
-    ys, xs = torch.meshgrid((torch.arange(h, device=device) + 0.5) / h,
-                            (torch.arange(w, device=device) + 0.5) / w, indexing="ij")
+    ys, xs = torch.meshgrid((torch.arange(h, device=device, dtype=dtype) + 0.5) / h,
+                            (torch.arange(w, device=device, dtype=dtype) + 0.5) / w,
+                            indexing="ij")
     return torch.stack([xs, ys], dim=-1).view(-1, 2)
 
 

@@ -24,7 +24,7 @@ def target_rays(intrinsics: Float[Tensor, "b n 3 3"], extrinsics: Float[Tensor, 
                 grid: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """Origins [B, N, 1, 3] and directions [B, N, P, 3] (P = gh * gw pixel centres of a
     ``grid`` over the image, raster order) scaled so that o + z d has camera depth z."""
-    xy = pixel_centres(*grid, intrinsics.device)
+    xy = pixel_centres(*grid, intrinsics.device, intrinsics.dtype)
     pix = torch.cat([xy, torch.ones_like(xy[:, :1])], -1)  # normalised homogeneous coords
     cam = torch.einsum("bnij,pj->bnpi", intrinsics.inverse(), pix)  # z = 1
     dirs = torch.einsum("bnij,bnpj->bnpi", extrinsics[..., :3, :3], cam)
@@ -34,7 +34,7 @@ def target_rays(intrinsics: Float[Tensor, "b n 3 3"], extrinsics: Float[Tensor, 
 def sample_depths(near: Float[Tensor, "b n"], far: Float[Tensor, "b n"], num: int
                   ) -> Float[Tensor, "b n s"]:
     """``num`` depths uniform in inverse depth, far to near."""
-    t = torch.linspace(0.0, 1.0, num, device=near.device)
+    t = torch.linspace(0.0, 1.0, num, device=near.device, dtype=near.dtype)
     disp = 1 / far[..., None] + t * (1 / near[..., None] - 1 / far[..., None])
     return 1 / disp
 

@@ -61,14 +61,16 @@ def camera_channels(intrinsics: Float[Tensor, "b v 3 3"], extrinsics: Float[Tens
                     target_extrinsics: Float[Tensor, "b n 4 4"], grid: tuple[int, int]
                     ) -> Float[Tensor, "b n 6 gh gw"]:
     """Target rays in the first context camera's frame: unit direction, and tanh of the origin
-    divided by the distance between the first two context cameras (scale-free, and bounded
-    when the context cameras coincide)."""
+    divided by the mean distance between the context cameras (over all pairs: the distance of
+    the two for V = 2; scale-free, and bounded when the context cameras coincide)."""
     origins, dirs = target_rays(target_intrinsics, target_extrinsics, grid)  # world
     w2c = extrinsics[:, :1].inverse()  # [B, 1, 4, 4]
     rot, trans = w2c[..., :3, :3], w2c[..., :3, 3]
     d = F.normalize(torch.einsum("bnij,bnpj->bnpi", rot, dirs), dim=-1)
     o = torch.einsum("bnij,bnpj->bnpi", rot, origins) + trans[:, :, None]
-    baseline = (extrinsics[:, 1, :3, 3] - extrinsics[:, 0, :3, 3]).norm(dim=-1)
+    centres = extrinsics[:, :, :3, 3]
+    pairs = torch.triu_indices(centres.shape[1], centres.shape[1], 1, device=centres.device)
+    baseline = (centres[:, pairs[0]] - centres[:, pairs[1]]).norm(dim=-1).mean(-1)
     o = torch.tanh(o / baseline.clamp(min=1e-6)[:, None, None, None])
     rays = torch.cat((d, o.expand_as(d)), -1)  # [B, N, P, 6]
     return rays.transpose(-1, -2).unflatten(-1, grid)
