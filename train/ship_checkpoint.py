@@ -21,7 +21,11 @@ from usplat_dr import portable
 portable.enable()  # AVX2 code paths, as the usplat command (before torch is imported)
 from usplat_dr.evaluation import evaluate, synthetic_indices  # noqa: E402
 from usplat_dr.io import write_json  # noqa: E402
-from usplat_dr.training.checkpoints import export_weights, load_model  # noqa: E402
+from usplat_dr.training.checkpoints import (  # noqa: E402
+    export_weights,
+    load_model,
+    read_usplat_checkpoint,
+)
 
 ROOT = Path(__file__).parents[1] / "checkpoints"
 #: Float16 storage is accepted when it moves the held-out PSNR by at most this much.
@@ -32,8 +36,9 @@ def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def held_out(checkpoint: Path, data: str, size: int, splits: list[str]) -> dict:
-    model, _ = load_model(checkpoint)
+def held_out(checkpoint: Path, data: str, size: int, splits: list[str],
+             trust: bool = False) -> dict:
+    model, _ = load_model(checkpoint, trust=trust)
     dataset = {"name": "synth", "roots": [data], "image_shape": [size, size]}
     with tempfile.TemporaryDirectory() as out:
         summary = evaluate(model, dataset, synthetic_indices(data, splits), out,
@@ -52,26 +57,27 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=64, help="evaluation image size")
     p.add_argument("--root", type=Path, default=ROOT, help="checkpoints folder (with its "
                    "manifest.json)")
+    p.add_argument("--trust-checkpoint", action="store_true", help="unpickle --checkpoint (and "
+                   "its model.init_from) fully: for your own files written before checkpoints "
+                   "held plain data only")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
 
-    reference = held_out(args.checkpoint, args.eval_data, args.size, ["standard"])
+    trust = args.trust_checkpoint
+    reference = held_out(args.checkpoint, args.eval_data, args.size, ["standard"], trust)
     file = args.root / f"{args.name}.pt"
-    import torch
-
-    state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    state = read_usplat_checkpoint(args.checkpoint, trust=trust)
     metadata = {"recipe": state["config"].get("loss", {}), "eval_data": args.eval_data}
-    export_weights(args.checkpoint, file, half=True, metadata=metadata)
+    export_weights(args.checkpoint, file, half=True, metadata=metadata, trust=trust)
     shipped = held_out(file, args.eval_data, args.size, args.splits)
     diff = abs(shipped["standard"]["psnr"] - reference["standard"]["psnr"])
     half = diff <= HALF_TOLERANCE_DB
     if not half:
-        export_weights(args.checkpoint, file, half=False, metadata=metadata)
+        export_weights(args.checkpoint, file, half=False, metadata=metadata, trust=trust)
         shipped = held_out(file, args.eval_data, args.size, args.splits)
     cfg = state["model_config"]
     init = state["config"]["model"].get("init_from")
-    init_steps = (torch.load(init, map_location="cpu", weights_only=False)["step"]
-                  if init else 0)
+    init_steps = read_usplat_checkpoint(init, trust=trust)["step"] if init else 0
     entry = {"name": args.name, "preset": state["config"]["model"].get("preset", "tiny"),
              "variant": cfg["variant"], "file": file.name, "sha256": sha256(file),
              "train_command": args.train_command, "data": args.data,

@@ -38,6 +38,13 @@ COMMANDS = {
 }
 
 
+#: User mistakes (a missing file, a bad config key or value, a checkpoint that does not fit,
+#: invalid input data): one line and exit status 2 instead of a traceback (``--debug`` shows
+#: it). The library raises these with messages that name the argument and the fix.
+USER_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
+               ValueError)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # Same numbers from the same command on every AVX2 CPU (before torch is imported).
@@ -45,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="usplat", description="usplat-dr: UniqueSplat with a "
                                      "Dr.Jit Gaussian rasteriser")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an error instead of its one-line message")
     sub = parser.add_subparsers(dest="command", required=True)
     parsers = {name: sub.add_parser(name, help=text) for name, (_, text) in COMMANDS.items()}
     chosen = next((a for a in argv if not a.startswith("-")), None)
@@ -55,7 +64,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="%(message)s")
-    return args.run(args)
+    try:
+        return args.run(args)
+    except USER_ERRORS as e:
+        if args.debug:
+            raise
+        print(f"usplat {args.command}: error: {e or type(e).__name__} (--debug shows "
+              f"the traceback)", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -2,8 +2,11 @@
 
 import doctest
 import importlib
+import logging
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,10 +65,75 @@ def test_cli_rejects_bad_arguments_as_usage_errors(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
-def test_train_names_a_bad_config_value_and_where_it_was_set():
-    with pytest.raises(SystemExit, match=r"usplat train: train\.steps='abc': expected int.*"
-                                         r"command line \(train\.steps=abc\)"):
-        main(["train", "--config", "synthetic_tiny.yaml", "train.steps=abc"])
+def test_train_names_a_bad_config_value_and_where_it_was_set(capsys):
+    assert main(["train", "--config", "synthetic_tiny.yaml", "train.steps=abc"]) == 2
+    assert re.search(r"usplat train: error: train\.steps='abc': expected int.*"
+                     r"command line \(train\.steps=abc\)", capsys.readouterr().err)
+
+
+SHIPPED = str(Path(__file__).parents[2] / "checkpoints" / "tiny_baseline.pt")
+FULL = str(Path(__file__).parents[2] / "checkpoints" / "tiny_full.pt")
+
+
+@pytest.fixture(scope="module")
+def one_scene(tmp_path_factory):
+    from usplat_dr.data.synth import synthesize
+
+    root = tmp_path_factory.mktemp("one_scene")
+    synthesize(root, scenes=1, frames=10, resolution=(32, 32), seed=8, spp=4, stage="test",
+               previews=0, progress=False, kinds=("indoor",))
+    return root
+
+
+#: The user mistakes README's "Errors" paragraph lists, each with the words its one line must
+#: hold. ``{data}`` is a real one-scene synthetic set, ``{tmp}`` an empty folder.
+MISTAKES = [
+    (["eval", "--checkpoint", "{tmp}/missing.ckpt", "--data", "{data}"],
+     "checkpoint '{tmp}/missing.ckpt' does not exist"),
+    (["eval", "--checkpoint", "{tmp}/text.ckpt", "--data", "{data}"],
+     "not a file written by torch.save"),
+    (["eval", "--checkpoint", SHIPPED, "--data", "{tmp}/nowhere"],
+     "--data: no evaluation_index_*.json"),
+    (["export-ply", "--checkpoint", SHIPPED, "--data", "{data}", "--scene", "nope"],
+     "scene 'nope' is not in"),
+    (["export-ply", "--checkpoint", SHIPPED, "--data", "{data}", "--target", "9"],
+     "--target must be in 0..1"),
+    (["train", "--config", "{tmp}/missing.yaml"], "config file '{tmp}/missing.yaml' does not "
+     "exist"),
+    (["train", "--config", "synthetic_tiny.yaml", "train.stepz=3"], "unknown key 'train.stepz'"),
+    (["train", "--config", "synthetic_tiny.yaml", "dataset.roots=[{tmp}/nowhere]"],
+     "dataset root {tmp}/nowhere does not exist"),
+    (["train", "--config", "synthetic_tiny.yaml", "dataset.roots=[{data}]",
+      "model.init_from={tmp}/missing.pt"], "model.init_from: checkpoint '{tmp}/missing.pt' "
+     "does not exist"),
+    (["train", "--config", "synthetic_tiny.yaml", "dataset.roots=[{data}]",
+      f"model.init_from={FULL}"], "holds variant 'full'; start from a baseline (a)"),
+    (["fit", "--data", "{tmp}/nowhere"], "index.json does not exist"),
+]
+
+
+@pytest.mark.parametrize("argv, needle", MISTAKES, ids=[" ".join(m[0][:2]) + f" {i}"
+                                                         for i, m in enumerate(MISTAKES)])
+def test_user_mistakes_end_in_one_line_and_status_2(argv, needle, one_scene, tmp_path, capsys,
+                                                     caplog):
+    caplog.set_level(logging.ERROR, logger="usplat_dr.model.hypernet.resnet")
+    (tmp_path / "text.ckpt").write_text("not a checkpoint")
+
+    def fill(text):
+        return text.replace("{tmp}", str(tmp_path)).replace("{data}", str(one_scene))
+
+    assert main(["-q", *map(fill, argv)]) == 2
+    err = capsys.readouterr().err.strip()
+    command = argv[0]
+    assert fill(needle) in err, err
+    assert err.startswith(f"usplat {command}: error: ") and "Traceback" not in err
+    assert len(err.splitlines()) == 1, err
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.ckpt"):
+        main(["--debug", "-q", "render", "--checkpoint", str(tmp_path / "missing.ckpt"),
+              "--data", str(tmp_path), "--index", "x.json"])
 
 
 def test_cli_commands_are_a_table_of_job_modules():

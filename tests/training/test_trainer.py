@@ -141,6 +141,9 @@ def test_resume_continues_exactly(synth_root, tmp_path):
     first.config = dataclasses.replace(first.config,
                                        train=dataclasses.replace(first.config.train, steps=3))
     first.fit()
+    # the checkpoint is tensors and plain data (RNG states included): weights_only loads it
+    state = torch.load(tmp_path / "b" / "checkpoints" / "last.ckpt", weights_only=True)
+    assert state["step"] == 3 and isinstance(state["rng"]["numpy"], dict)
     resumed = Trainer(config(synth_root, tmp_path / "b", 6, *opts))
     assert resumed.resume() and resumed.step == 3
     resumed.fit()

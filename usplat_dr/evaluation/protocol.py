@@ -154,5 +154,5 @@ def load_example(dataset: dict, index: str, scene: str | None = None) -> dict:
     for example in ds:
         if scene is None or example["scene"] == scene:
             return default_collate([example])
-    raise KeyError(f"scene {scene!r} is not in {dataset['roots']} with index {index} (or it "
+    raise ValueError(f"scene {scene!r} is not in {dataset['roots']} with index {index} (or it "
                    f"was skipped; see the dataset summary above)")

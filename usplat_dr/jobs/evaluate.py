@@ -6,7 +6,7 @@ import json
 
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
-from usplat_dr.jobs.render_video import add_image_shape_argument, image_shape
+from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
 from usplat_dr.training.checkpoints import load_model
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
@@ -20,6 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="evaluation index JSON(s); default: the synthetic set's own splits")
     p.add_argument("--splits", nargs="+", help="synthetic splits to evaluate (default: all)")
     add_image_shape_argument(p)
+    add_trust_argument(p)
     p.add_argument("--prune", action="store_true",
                    help="prune the Gaussians per target view before rendering, as the model "
                    "does at inference (exact culling + merging near-duplicates): faster, "
@@ -35,13 +36,13 @@ def run(args: argparse.Namespace) -> int:
     if indices is None:
         indices = synthetic_indices(args.data, args.splits)
         if not indices:
-            print(f"no evaluation_index_*.json with scenes in {args.data}; pass --index "
-                  f"NAME=PATH (e.g. standard=assets/evaluation_index_re10k.json)")
-            return 2
+            raise FileNotFoundError(f"--data: no evaluation_index_*.json with scenes in "
+                                    f"{args.data}; pass --index NAME=PATH (e.g. "
+                                    f"standard=assets/evaluation_index_re10k.json)")
     lpips = None
     if args.lpips_vgg or args.lpips_lin:
         lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)
-    model, step = load_model(args.checkpoint, args.device)
+    model, step = load_model(args.checkpoint, args.device, args.trust_checkpoint)
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
                        prune=model.inference_prune if args.prune else None)

@@ -23,8 +23,8 @@ def run(args: argparse.Namespace) -> int:
         out = model(*model_inputs(batch, torch.device(args.device)), render=False)
     n = out.num_targets
     if not 0 <= args.target < n:
-        print(f"--target must be in 0..{n - 1} (the scene's target views)")
-        return 2
+        raise ValueError(f"--target must be in 0..{n - 1} (the scene's target views), got "
+                         f"{args.target}")
     path = write_ply(args.out, out.target(0, args.target), min_opacity=args.min_opacity)
     print(f"wrote {path}: the Gaussians predicted for target {args.target} of "
           f"{batch['scene'][0]}")

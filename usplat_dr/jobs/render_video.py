@@ -30,7 +30,14 @@ def add_example_arguments(p: argparse.ArgumentParser) -> None:
                    "standard split)")
     p.add_argument("--scene", help="scene key (default: the first of the index)")
     add_image_shape_argument(p)
+    add_trust_argument(p)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+
+
+def add_trust_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--trust-checkpoint", action="store_true",
+                   help="unpickle the checkpoint fully if torch.load(weights_only=True) refuses "
+                   "it (it can run code: only for files you trust)")
 
 
 def add_image_shape_argument(p: argparse.ArgumentParser) -> None:
@@ -44,13 +51,13 @@ def image_shape(args: argparse.Namespace) -> tuple[int, int]:
     default, 256 x 256, for a checkpoint that records none)."""
     if args.image_shape:
         return tuple(args.image_shape)
-    return training_image_shape(args.checkpoint) or (256, 256)
+    return training_image_shape(args.checkpoint, args.trust_checkpoint) or (256, 256)
 
 
 def one_example(args: argparse.Namespace) -> tuple:
     """The model and the example that ``add_example_arguments``' arguments name."""
     index = args.index or synthetic_indices(args.data, ["standard"])["standard"]
-    model, _ = load_model(args.checkpoint, args.device)
+    model, _ = load_model(args.checkpoint, args.device, args.trust_checkpoint)
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
     return model, load_example(dataset, index, args.scene)
 

@@ -4,7 +4,7 @@ under ``torchrun`` (DistributedDataParallel)."""
 import argparse
 import json
 
-from usplat_dr.config import ConfigError, load_config
+from usplat_dr.config import load_config
 from usplat_dr.training import train
 from usplat_dr.training.config import RootCfg
 
@@ -21,10 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:  # a bad file, key or value: one line naming it, before anything is built
-        cfg = RootCfg.load(load_config(args.config or ["synthetic_tiny.yaml"], args.overrides))
-    except ConfigError as e:
-        raise SystemExit(f"usplat train: {e}") from None
+    # a bad file, key or value: a ConfigError naming it, before anything is built (the CLI
+    # prints it as one line)
+    cfg = RootCfg.load(load_config(args.config or ["synthetic_tiny.yaml"], args.overrides))
     result = train(cfg, resume=args.resume)
     print(json.dumps(result))
     return 0

@@ -8,10 +8,9 @@ import dataclasses
 import os
 from pathlib import Path
 
-import torch
 from torch import Tensor, nn
 
-from usplat_dr.io import torch_save
+from usplat_dr.io import load_torch_file, torch_save
 
 PREFIX = "encoder."
 
@@ -34,15 +33,8 @@ def read_checkpoint(checkpoint, map_location="cpu", trust_checkpoint: bool = Fal
         raise FileNotFoundError(
             f"checkpoint file {str(path)!r} does not exist; download the MVSplat checkpoint "
             f"(e.g. re10k.ckpt from the MVSplat release) and pass its path")
-    try:
-        return torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:  # an unpickling error: objects beyond tensors and plain types
-        if not trust_checkpoint:
-            raise ValueError(
-                f"checkpoint {str(path)!r} holds objects that torch.load(weights_only=True) "
-                f"refuses ({type(e).__name__}: {str(e)[:200]}); if you trust the file, pass "
-                f"trust_checkpoint=True") from e
-        return torch.load(path, map_location=map_location, weights_only=False)
+    return load_torch_file(path, "checkpoint", map_location, trust=trust_checkpoint,
+                           trust_hint="trust_checkpoint=True")
 
 
 def extract_state_dict(ckpt: dict) -> dict[str, Tensor]:

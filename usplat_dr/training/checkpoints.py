@@ -9,17 +9,32 @@ from pathlib import Path
 import torch
 
 from usplat_dr.config import ConfigError
-from usplat_dr.io import torch_save
+from usplat_dr.io import load_torch_file, torch_save
 from usplat_dr.model import UniqueSplat, UniqueSplatCfg
 
+#: How a user opts in to full unpickling (named in the refusal's message).
+TRUST_HINT = "--trust-checkpoint (usplat eval/render/export-ply/train) or trust=True"
 
-def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"):
-    """A ``UniqueSplat`` from a training checkpoint (``usplat train``'s ``last.ckpt``)."""
+
+def read_usplat_checkpoint(checkpoint: str | os.PathLike, map_location="cpu",
+                           trust: bool = False) -> dict:
+    """A usplat checkpoint file as a dict, loaded with ``torch.load(weights_only=True)``:
+    ours hold tensors and plain data only. ``trust=True`` allows full unpickling (files
+    written before RNG states were stored as plain data need it; it can run code)."""
     path = Path(checkpoint)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist (usplat train writes "
-                                f"OUTPUT_DIR/checkpoints/last.ckpt)")
-    state = torch.load(path, map_location=device, weights_only=False)
+                                f"OUTPUT_DIR/checkpoints/last.ckpt; shipped ones are in "
+                                f"checkpoints/)")
+    return load_torch_file(path, "checkpoint", map_location, trust=trust, trust_hint=TRUST_HINT)
+
+
+def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu",
+               trust: bool = False):
+    """A ``UniqueSplat`` from a training checkpoint (``usplat train``'s ``last.ckpt``) or a
+    shipped one, and its step. ``trust``: see ``read_usplat_checkpoint``."""
+    path = Path(checkpoint)
+    state = read_usplat_checkpoint(path, device, trust)
     if "model_config" not in state:
         raise ValueError(f"{path} is not a usplat training checkpoint (no 'model_config'); "
                          f"an MVSplat checkpoint loads with UniqueSplat.load_mvsplat")
@@ -34,10 +49,11 @@ def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"
     return model.to(device).eval(), state.get("step", 0)
 
 
-def training_image_shape(checkpoint: str | os.PathLike) -> tuple[int, int] | None:
+def training_image_shape(checkpoint: str | os.PathLike, trust: bool = False
+                         ) -> tuple[int, int] | None:
     """The (H, W) a usplat checkpoint was trained at (its config's ``dataset.image_shape``),
     or ``None`` when the checkpoint does not record one."""
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    state = read_usplat_checkpoint(checkpoint, trust=trust)
     shape = state.get("config", {}).get("dataset", {}).get("image_shape")
     return (int(shape[0]), int(shape[1])) if shape else None
 
@@ -48,15 +64,16 @@ def load_models(runs: dict, device) -> dict:
             for key, run in runs.items()}
 
 
-def init_from_checkpoint(model, path: str | os.PathLike) -> None:
+def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) -> None:
     """The paper's protocol: the primary network (encoder and predictor) from a trained
     usplat checkpoint (``usplat train``'s or a shipped one, any variant); for (b) and (c) its
     target layers' weights become W, and the hypernetworks' zero-initialised outputs make
-    the model start exactly where that checkpoint is."""
+    the model start exactly where that checkpoint is. ``trust``: see
+    ``read_usplat_checkpoint`` (``model.trust_checkpoint``)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"model.init_from: checkpoint {str(path)!r} does not exist")
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = read_usplat_checkpoint(path, trust=trust)
     if "model_config" not in state:
         raise ConfigError(f"model.init_from: {path} is not a usplat checkpoint (no "
                           f"'model_config'); an MVSplat checkpoint goes in model.init_mvsplat")
@@ -71,14 +88,14 @@ def init_from_checkpoint(model, path: str | os.PathLike) -> None:
 
 
 def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: bool = True,
-                   metadata: dict | None = None) -> Path:
+                   metadata: dict | None = None, trust: bool = False) -> Path:
     """A shippable copy of a training checkpoint: the model's weights (float16 when ``half``:
     half the bytes, and evaluation within 0.01 dB of float32, measured by
     ``train/ship_checkpoint.py``), its model config, training config, step, provenance and
     ``metadata``; no optimiser, scheduler or RNG state. Plain data only, so it loads with
     ``torch.load(weights_only=True)``; ``usplat eval/render/export-ply --checkpoint`` and
     ``model.init_from`` read it like a training checkpoint."""
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    state = read_usplat_checkpoint(checkpoint, trust=trust)
     if "model_config" not in state:
         raise ValueError(f"checkpoint {checkpoint} is not a usplat training checkpoint")
     weights = {k: (v.half() if half and v.is_floating_point() else v).contiguous()

@@ -70,6 +70,9 @@ class ModelSection:
     overrides: dict = field(default_factory=dict)  # fields of the preset's UniqueSplatCfg
     init_mvsplat: str | None = None  # an MVSplat checkpoint for the primary network
     init_from: str | None = None  # a usplat checkpoint of (a): the paper's protocol
+    # unpickle init_mvsplat / init_from (and, with --resume, the run's last.ckpt) fully, for
+    # files that torch.load(weights_only=True) refuses; only for files you trust (runs code)
+    trust_checkpoint: bool = False
 
 
 @dataclass(frozen=True)
@@ -111,7 +114,7 @@ def model_from_config(section: ModelSection | dict) -> UniqueSplat:
     if section.init_mvsplat and section.init_from:
         raise ConfigError("model.init_mvsplat and model.init_from both set: choose one")
     if section.init_mvsplat:
-        model.load_mvsplat(section.init_mvsplat)
+        model.load_mvsplat(section.init_mvsplat, trust_checkpoint=section.trust_checkpoint)
     if section.init_from:
-        init_from_checkpoint(model, section.init_from)
+        init_from_checkpoint(model, section.init_from, trust=section.trust_checkpoint)
     return model

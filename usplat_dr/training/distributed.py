@@ -41,8 +41,12 @@ def setup_distributed(device: str, threads: int | None = None
 
 
 def rng_state() -> dict:
-    """The random number generators' states (torch, NumPy, Python, CUDA), for checkpoints."""
-    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+    """The random number generators' states (torch, NumPy, Python, CUDA), for checkpoints, as
+    tensors and plain data (so a checkpoint loads with ``torch.load(weights_only=True)``)."""
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    state = {"torch": torch.get_rng_state(),
+             "numpy": {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)),
+                       "pos": int(pos), "has_gauss": int(has_gauss), "gauss": float(gauss)},
              "python": random.getstate()}
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
@@ -51,8 +55,12 @@ def rng_state() -> dict:
 
 def set_rng_state(state: dict) -> None:
     """Restore ``rng_state()``'s states."""
-    torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"].cpu())
+    npy = state["numpy"]
+    if isinstance(npy, dict):
+        npy = (npy["kind"], npy["keys"].cpu().numpy().astype(np.uint32), npy["pos"],
+               npy["has_gauss"], npy["gauss"])
+    np.random.set_state(npy)  # (a tuple in checkpoints written before the dict form)
     random.setstate(state["python"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])

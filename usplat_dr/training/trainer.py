@@ -34,6 +34,7 @@ from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.evaluation.provenance import provenance
 from usplat_dr.geometry.cameras import pixel_centres
 from usplat_dr.io import torch_save
+from usplat_dr.training.checkpoints import read_usplat_checkpoint
 from usplat_dr.training.config import RootCfg, model_from_config
 from usplat_dr.training.distributed import rng_state, set_rng_state, setup_distributed
 
@@ -216,8 +217,9 @@ class Trainer:
         path = Path(path) if path else self.checkpoint_path
         if not path.is_file():
             return False
-        # our own file: it holds RNG states (numpy arrays), so full unpickling is needed
-        state = torch.load(path, map_location=self.device, weights_only=False)
+        # tensors and plain data only: weights_only=True (model.trust_checkpoint for a file
+        # written before the RNG states were plain data)
+        state = read_usplat_checkpoint(path, self.device, self.config.model.trust_checkpoint)
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])

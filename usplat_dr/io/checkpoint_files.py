@@ -1,0 +1,50 @@
+"""Reading ``torch.save`` files without running their code.
+
+``torch.load(weights_only=True)`` rebuilds tensors and plain Python data only; a file that
+also pickles other objects (a callable, a class instance) is refused, because unpickling them
+can execute arbitrary code. Full unpickling happens only when the caller opts in
+(``trust=True``) for a file it trusts.
+"""
+
+import os
+import pickle
+import zipfile
+from pathlib import Path
+
+import torch
+
+
+class UntrustedCheckpointError(ValueError):
+    """A file that ``torch.load(weights_only=True)`` refuses: it holds pickled objects beyond
+    tensors and plain data, which could run code when loaded."""
+
+
+def load_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_location="cpu",
+                    trust: bool = False, trust_hint: str = "trust_checkpoint=True"):
+    """``torch.load`` ``path`` safely (``weights_only=True``); ``trust=True`` allows full
+    unpickling. Errors name ``what``, the file and, for refused files, the opt-in
+    (``trust_hint``: the argument or flag that sets ``trust``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {str(path)!r} does not exist")
+    if trust:
+        return torch.load(path, map_location=map_location, weights_only=False)
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        text = str(e)
+        lines = [line.strip() for line in text.splitlines() if "GLOBAL" in line.upper()
+                 and "global" in line.lower() and ("unsupported" in line.lower())]
+        if lines:  # torch names the object it refused, e.g. "unsupported GLOBAL posix.system"
+            detail = lines[0]
+            raise UntrustedCheckpointError(
+                f"{what} {str(path)!r} holds pickled objects beyond tensors and plain data "
+                f"({detail[:200]}), which could run code when loaded: refused. If you trust "
+                f"the file, pass {trust_hint}") from None
+        reason = next((line.strip() for line in text.splitlines() if "load key" in line),
+                      "not a pickle")
+        raise ValueError(f"{what} {str(path)!r} is not a file written by torch.save "
+                         f"({reason[:200]})") from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as e:
+        raise ValueError(f"{what} {str(path)!r} is not a file written by torch.save, or it "
+                         f"is truncated ({type(e).__name__}: {str(e)[:200]})") from None
