@@ -4,6 +4,7 @@ means, and the files ``usplat eval`` writes."""
 import csv
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -94,3 +95,36 @@ def test_usplat_eval_defaults_to_the_checkpoints_image_shape_and_no_pruning(tmp_
                  str(tmp_path / "b")]) == 0
     b = json.loads((tmp_path / "b" / "summary.json").read_text())
     assert b["image_shape"] == [16, 16] and b["prune"] == model.inference_prune.label()
+
+
+def test_keys_that_cannot_be_scored_are_counted_and_named(tmp_path):
+    from usplat_dr.data.synth import synthesize
+    from usplat_dr.model import UniqueSplat
+
+    root = tmp_path / "data"
+    synthesize(root, scenes=2, frames=10, resolution=(32, 32), seed=6, spp=4, stage="test",
+               previews=0, progress=False, kinds=("indoor",))
+    index = json.loads(Path(synthetic_indices(root)["standard"]).read_text())
+    real = sorted(k for k, v in index.items() if v is not None)
+    # one real scene kept, one set to null, one key the data does not have, and one entry
+    # naming a frame the scene lacks (the dataset skips it with a warning)
+    entry = index[real[0]]
+    custom = {real[0]: entry, real[1]: None, "ghost": entry,
+              "too_far": {"context": [0, 99], "target": [1]}}
+    index_path = tmp_path / "custom.json"
+    index_path.write_text(json.dumps(custom))
+    model = UniqueSplat.from_preset("tiny", variant="baseline")
+    dataset = {"name": "synth", "roots": [str(root)], "image_shape": [32, 32]}
+    summary = evaluate(model, dataset, {"custom": str(index_path)}, tmp_path / "eval",
+                       progress=False, images_per_split=0)
+    split = summary["splits"]["custom"]
+    assert split["coverage"] == "scored 1 of 4 keys: 1 null, 2 failed"
+    assert split["scenes"] == 1 and sorted(split["failed_scenes"]) == ["ghost", "too_far"]
+
+    (tmp_path / "corrupt.json").write_text('{"a": {"context": [0, 1], "target": [2]')
+    with pytest.raises(ValueError, match="corrupt.json is not valid JSON"):
+        evaluate(model, dataset, {"c": str(tmp_path / "corrupt.json")}, tmp_path / "e2",
+                 progress=False)
+    (root / "test" / "index.json").write_bytes(b"\xff\xfe garbage")
+    with pytest.raises(ValueError, match="index.json is not valid JSON"):
+        evaluate(model, dataset, {"custom": str(index_path)}, tmp_path / "e3", progress=False)

@@ -190,10 +190,14 @@ def read_index(stage_dir: str | os.PathLike) -> dict[str, str]:
         raise FileNotFoundError(f"{path} does not exist: every stage folder needs an index.json "
                                 "mapping scene keys to chunk files (write one with "
                                 "usplat_dr.data.chunks.write_index)")
-    with open(path) as f:
-        index = json.load(f)
-    if not isinstance(index, dict):
-        raise ValueError(f"{path} must hold a JSON object (scene key -> chunk file)")
+    try:
+        index = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}); rebuild it with "
+                         f"usplat_dr.data.chunks.write_index(stage_dir, index_chunks(stage_dir))"
+                         ) from None
+    if not isinstance(index, dict) or not all(isinstance(v, str) for v in index.values()):
+        raise ValueError(f"{path} must hold a JSON object (scene key -> chunk file name)")
     return index
 
 

@@ -185,8 +185,10 @@ def read_evaluation_index(path: str | os.PathLike) -> dict[str, dict | None]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"evaluation index {path} does not exist (index_path)")
-    with open(path) as f:
-        index = json.load(f)
+    try:
+        index = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"evaluation index {path} is not valid JSON ({e})") from None
     if not isinstance(index, dict):
         raise ValueError(f"evaluation index {path} must be a JSON object")
     for key, entry in index.items():

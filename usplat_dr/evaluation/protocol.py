@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
+from usplat_dr.data.view_sampler import read_evaluation_index
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.io import write_json
@@ -115,7 +116,12 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
             metrics[key] = nan_mean(vals) if vals else None
         if lpips is None:
             metrics["lpips"] = "unavailable (no LPIPS weight files given)"
-        summary["splits"][split] = {"scenes": len(scenes), **metrics}
+        summary["splits"][split] = {"scenes": len(scenes), **metrics,
+                                    **index_coverage(index, [r["scene"] for r in scenes])}
+        coverage = summary["splits"][split]
+        if coverage["failed"]:
+            log.warning("%s: %s (first: %s)", split, coverage["coverage"],
+                        ", ".join(coverage["failed_scenes"][:5]))
     steady = times[1:] if len(times) > 1 else times  # the first scene warms up kernels
     summary.update(
         parameters=sum(p.numel() for p in model.parameters()),
@@ -131,6 +137,21 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     write_json(out / "summary.json", summary)
     log.info("evaluation summary: %s", json.dumps(summary["splits"]))
     return summary
+
+
+def index_coverage(index: str | Path, scored: list[str]) -> dict:
+    """What an evaluation index asked for and what was scored: ``keys`` in the index,
+    ``null`` entries (the index's own "not evaluated"), ``failed`` keys with an entry that
+    were not scored (not in the data, or skipped: the dataset's warnings say why) and the
+    first 20 of them by name, and a one-line ``coverage``."""
+    entries = read_evaluation_index(index)
+    done = set(scored)
+    null = sum(1 for v in entries.values() if v is None)
+    failed = [k for k, v in entries.items() if v is not None and k not in done]
+    return {"keys": len(entries), "null": null, "failed": len(failed),
+            "failed_scenes": failed[:20],
+            "coverage": f"scored {len(done):,} of {len(entries):,} keys: {null:,} null, "
+                        f"{len(failed):,} failed"}
 
 
 def synthetic_indices(root: str | Path, splits=None) -> dict[str, str]:
