@@ -19,9 +19,12 @@ def test_doctor_reports_and_succeeds_here():
     r = subprocess.run([sys.executable, "-m", "usplat_dr", "doctor"], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
-    for needle in ("drjit", "mitsuba", "torch", "numpy", "libLLVM 19", "backends: ",
+    for needle in ("drjit", "mitsuba", "torch", "numpy", "backends: ",
                    "threads", "LLVM min/max kernel: ok", "llvm_ad_rgb", "CUDA"):
         assert needle in r.stdout, needle
+    # any suitable libLLVM: 19 here, 20 or later on newer machines
+    loaded = re.search(r"loaded: libLLVM (\d+)\.", r.stdout)
+    assert loaded and int(loaded.group(1)) >= 19, r.stdout
 
 
 def test_doctor_exits_nonzero_with_advice_without_llvm(tmp_path):

@@ -1,6 +1,7 @@
 """Training: overfitting one scene, exact resume, stopping on signals and on non-finite steps,
 distributed data parallel (2 gloo ranks) against one process on the combined batch, configs."""
 
+import csv
 import dataclasses
 import os
 import subprocess
@@ -270,3 +271,51 @@ def test_hyper_lr_scale_gives_the_hypernetwork_branches_their_own_rate(synth_roo
     assert len(parameter_groups(trainer.model, 1e-3)) == 1
     with pytest.raises(ConfigError, match="hyper_lr_scale"):
         parameter_groups(trainer.model, 1e-3, 0)
+
+
+def test_a_skipped_step_advances_the_learning_rate_schedule(synth_root, tmp_path):
+    # Decided: the learning rate is a function of the step counter. A skipped (non-finite)
+    # step consumes its batch and its step, so the schedule advances with it; the rates of
+    # the following steps are those of a run without the skip (compared exactly: the same
+    # scheduler arithmetic on the same step count).
+    opts = ("train.log_every=1", "threads=1")
+    clean = Trainer(config(synth_root, tmp_path / "a", 4, *opts))
+    clean.fit()
+    skipping = Trainer(config(synth_root, tmp_path / "b", 4, *opts))
+    original = skipping.loss
+
+    def nan_at_step_1(out, batch):
+        loss, parts = original(out, batch)
+        return (loss * float("nan") if skipping.step == 1 else loss), parts
+
+    skipping.loss = nan_at_step_1
+    skipping.fit()
+    assert skipping.skipped == 1
+    assert skipping.scheduler.get_last_lr() == clean.scheduler.get_last_lr()
+    assert skipping.scheduler.last_epoch == clean.scheduler.last_epoch == 4
+
+    def lrs(folder):
+        with open(folder / "metrics.csv") as f:
+            return {int(r["step"]): float(r["lr"]) for r in csv.DictReader(f)}
+
+    a, b = lrs(tmp_path / "a"), lrs(tmp_path / "b")
+    assert a[3] == b[3] and a[4] == b[4]
+
+
+def test_lpips_joins_the_loss_at_its_step(synth_root, tmp_path):
+    # The LPIPS training branch with weight files of the real layouts (random values): the
+    # term is logged from loss.lpips_after_step on, and it changes the update.
+    from tests.evaluation.test_lpips import weight_files
+
+    vgg, lin, *_ = weight_files(tmp_path)
+    opts = ("train.log_every=1", "threads=1", "loss.lpips_after_step=1")
+    with_lpips = Trainer(config(synth_root, tmp_path / "a", 2, *opts, "loss.lpips=0.5",
+                                f"loss.lpips_vgg={vgg}", f"loss.lpips_lin={lin}"))
+    with_lpips.fit()
+    without = Trainer(config(synth_root, tmp_path / "b", 2, *opts, "loss.lpips=0"))
+    without.fit()
+    with open(tmp_path / "a" / "metrics.csv") as f:
+        rows = {int(r["step"]): r for r in csv.DictReader(f)}
+    assert rows[1]["lpips"] == "" and float(rows[2]["lpips"]) > 0
+    a, b = params(with_lpips.model), params(without.model)
+    assert any(not torch.equal(a[k], b[k]) for k in a)  # the LPIPS gradient moved weights

@@ -17,6 +17,7 @@ import os
 import random
 import signal
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -272,7 +273,8 @@ class Trainer:
 
     def train_step(self, batch: dict) -> dict | None:
         """One optimiser step on ``batch``: its statistics, or ``None`` when the loss or
-        gradient is not finite (the step is skipped and BatchNorm statistics restored)."""
+        gradient is not finite (no update, BatchNorm statistics restored; the learning-rate
+        schedule advances as for any step)."""
         self.ddp.train()
         args = model_inputs(batch, self.device)
         target = batch["target"]["image"].to(self.device)
@@ -301,6 +303,14 @@ class Trainer:
                 for n, b in self.model.named_buffers():
                     if n in buffers:
                         b.copy_(buffers[n])
+            # A skipped step still counts (its batch is consumed, ``step`` advances), and the
+            # learning rate stays a function of ``step``: the schedule advances too, so a run
+            # with skips ends its schedule at ``train.steps`` like one without. (torch warns
+            # when the very first step is skipped, the optimizer not having stepped yet; the
+            # schedule's first value is then consumed by the skipped step, as intended.)
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler")
+                self.scheduler.step()
             return None
         self.consecutive_bad = 0
         self.optimizer.step()
