@@ -212,8 +212,8 @@ def index_chunks(stage_dir: str | os.PathLike) -> dict[str, str]:
 
 class ChunkWriter:
     """Write scenes into ``<root>/<stage>/NNNNNN.torch`` chunks of about ``chunk_bytes`` each
-    (and at most ``chunk_scenes`` scenes each, when given), plus ``index.json`` (written atomically after every chunk, so a killed writer leaves a
-    consistent dataset).
+    (and at most ``chunk_scenes`` scenes each, when given), plus ``index.json`` (written
+    atomically after every chunk, so a killed writer leaves a consistent dataset).
 
     Examples:
         >>> import tempfile
