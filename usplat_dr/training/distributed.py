@@ -31,7 +31,8 @@ log = logging.getLogger(__name__)
 def setup_distributed(device: str, threads: int | None = None
                       ) -> tuple[int, int, torch.device]:
     """Rank, world size and device; initialises the process group under torchrun. CPU threads
-    of torch and Dr.Jit per process: ``threads``, or the cores divided by the ranks."""
+    of torch and Dr.Jit per process: ``threads``, or the cores divided by this machine's
+    ranks."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     if device == "cuda":
@@ -46,8 +47,10 @@ def setup_distributed(device: str, threads: int | None = None
         raise ConfigError(f"device must be 'cpu' or 'cuda', got {device!r}")
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if device == "cuda" else "gloo")
-    # Share the cores between ranks so they do not oversubscribe them.
-    threads = threads or max(1, (os.cpu_count() or 1) // world)
+    # Share the machine's cores between its ranks (torchrun's LOCAL_WORLD_SIZE; not all ranks
+    # of a multi-node run) so they do not oversubscribe them.
+    ranks_here = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+    threads = threads or max(1, (os.cpu_count() or 1) // ranks_here)
     torch.set_num_threads(threads)
     if device == "cpu":
         require_llvm()  # pins Dr.Jit's target now (USPLAT_PORTABLE), before any kernel
