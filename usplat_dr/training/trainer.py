@@ -467,7 +467,8 @@ def train(cfg: dict | RootCfg, resume: bool = False) -> dict:
 
     Under torchrun, an exception on any rank becomes ``RankFailed`` on every rank, with the
     message of the rank that failed first (``usplat_dr.training.distributed.rank_failure``);
-    its traceback is logged there unless it is a configuration or data error."""
+    its traceback is logged there, unless it is a ``ConfigError`` (data and configuration
+    errors, whose message says it all) or ``TrainingStopped``."""
     trainer = None
     try:
         trainer = Trainer(cfg)
