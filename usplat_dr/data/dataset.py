@@ -10,8 +10,9 @@ around to a multiple of the global workers, and global worker ``g`` takes the ``
 contiguous block. So every worker gets examples whatever the number of chunks (a one-chunk set
 trains on 8 ranks), no scene is seen twice in an epoch except the fewer than ``ranks x
 workers`` padding repeats, every worker yields the same number of examples (so every rank
-takes the same number of batches an epoch), and a worker reads only the one or two chunks its
-block spans. Evaluation stages are not padded (no scene counted twice).
+takes the same number of batches an epoch), and a worker reads only the chunks its block spans
+(at most two of them shared with another worker). Evaluation stages are not padded (no scene
+counted twice).
 
 Bad data never stops a run and is never silently lost: an unreadable chunk, a malformed
 record, a corrupt image, a scene missing from ``index.json``, a camera with NaN or a singular
