@@ -111,19 +111,32 @@ def _keys(ds: ChunkDataset, workers: int) -> list[str]:
     return [ex["scene"] for ex in loader]
 
 
-def test_chunks_split_over_ranks_and_workers_without_duplicates(tmp_path):
+def _per_rank(cfg, epoch: int, ranks: int, workers: int) -> list[list[str]]:
+    out = []
+    for rank in range(ranks):
+        ds = ChunkDataset(cfg, "train", rank=rank, world_size=ranks)
+        ds.set_epoch(epoch)
+        out.append(_keys(ds, workers))
+    return out
+
+
+def test_scenes_split_over_ranks_and_workers_padded_by_wrapping(tmp_path):
     scenes = [fake_scene(f"s{i:02d}", 3, shape=(16, 16), fmt="png", seed=i) for i in range(14)]
     write_plain_dataset(tmp_path, "train", [scenes[i:i + 2] for i in range(0, 14, 2)])
     cfg = dataset_cfg("synth", tmp_path, near=1.0, far=10.0, image_shape=(16, 16),
                       view_sampler=ViewSamplerAllCfg())
     everything = sorted(s["key"] for s in scenes)
+    firsts = []
     for epoch in (0, 1):
-        seen = []
-        for rank in (0, 1):
-            ds = ChunkDataset(cfg, "train", rank=rank, world_size=2)
-            ds.set_epoch(epoch)
-            seen += _keys(ds, workers=2)
-        assert sorted(seen) == everything  # every scene once, across 2 ranks x 2 workers
+        per_rank = _per_rank(cfg, epoch, ranks=2, workers=2)
+        # 14 scenes over 2 ranks x 2 workers: padded by wrapping to 16, 4 a worker
+        assert [len(keys) for keys in per_rank] == [8, 8]
+        seen = per_rank[0] + per_rank[1]
+        assert sorted(set(seen)) == everything  # every scene...
+        assert len(seen) - len(set(seen)) == 2  # ...once, but for the 2 padding repeats
+        firsts.append(seen)
+    assert firsts[0] != firsts[1]  # reshuffled per epoch
+    assert _per_rank(cfg, 0, 2, 2)[0] + _per_rank(cfg, 0, 2, 2)[1] == firsts[0]  # (seed, epoch)
     ds = ChunkDataset(cfg, "train")
     orders = []
     for epoch in (0, 1):
@@ -133,6 +146,39 @@ def test_chunks_split_over_ranks_and_workers_without_duplicates(tmp_path):
     ds.set_epoch(0)
     assert _keys(ds, 0) == orders[0]  # deterministic for (seed, epoch)
 
+
+@pytest.mark.parametrize("ranks, workers", [(2, 0), (3, 0), (2, 2)])
+def test_one_chunk_feeds_every_rank_and_worker(tmp_path, ranks, workers):
+    # the set `usplat synth` writes by default: every scene in one chunk
+    scenes = [fake_scene(f"s{i}", 3, shape=(16, 16), fmt="png", seed=i) for i in range(5)]
+    write_plain_dataset(tmp_path, "train", [scenes])
+    cfg = dataset_cfg("synth", tmp_path, near=1.0, far=10.0, image_shape=(16, 16),
+                      view_sampler=ViewSamplerAllCfg())
+    per_rank = _per_rank(cfg, 0, ranks, workers)
+    total = ranks * max(workers, 1)
+    per = -(-5 // total)  # scenes per global worker after padding
+    assert [len(keys) for keys in per_rank] == [per * max(workers, 1)] * ranks
+    seen = sum(per_rank, [])
+    assert sorted(set(seen)) == [s["key"] for s in scenes]
+    assert len(seen) == per * total  # the 5 scenes and per * total - 5 padding repeats
+
+
+def test_evaluation_shards_are_not_padded_and_faults_are_reported_once(tmp_path, caplog):
+    scenes = [fake_scene(f"s{i}", 3, shape=(16, 16), fmt="png", seed=i) for i in range(5)]
+    stray = fake_scene("stray", 3, shape=(16, 16), fmt="png", seed=9)
+    write_plain_dataset(tmp_path, "test", [scenes[:3], scenes[3:]])
+    # a scene the index does not know, in the first chunk, read by both workers of rank 0
+    torch.save(scenes[:3] + [stray], tmp_path / "test" / "000000.torch")
+    cfg = dataset_cfg("synth", tmp_path, near=1.0, far=10.0, image_shape=(16, 16),
+                      view_sampler=ViewSamplerAllCfg())
+    summaries = []
+    seen = []
+    for rank in range(3):
+        ds = ChunkDataset(cfg, "test", rank=rank, world_size=3)
+        seen += [ex["scene"] for ex in ds]
+        summaries.append(ds.last_summary)
+    assert sorted(seen) == [s["key"] for s in scenes]  # no padding in evaluation
+    assert sum(s["not in index.json"] for s in summaries) == 1  # reported once, not twice
 
 # ---- shims ----
 

@@ -137,3 +137,18 @@ def test_cli_synth(tmp_path, capsys):
     for bad in (["--frames", "2"], ["--resolution", "2", "8"], ["--kind", "space"]):
         with pytest.raises(SystemExit):
             main(["synth", "--out", str(tmp_path), *bad])
+
+
+def test_cli_synth_chunk_scenes(tmp_path):
+    assert main(["-q", "synth", "--out", str(tmp_path), "--scenes", "3", "--frames", "4",
+                 "--resolution", "8", "8", "--spp", "1", "--kind", "object", "--stage", "train",
+                 "--chunk-scenes", "2", "--previews", "0"]) == 0
+    chunks = sorted((tmp_path / "train").glob("*.torch"))
+    assert [len(read_chunk(c)) for c in chunks] == [2, 1]
+    index = json.loads((tmp_path / "train" / "index.json").read_text())
+    assert sorted(index.values()) == ["000000.torch", "000000.torch", "000001.torch"]
+    assert json.loads((tmp_path / "synth.json").read_text())["chunk_scenes"] == 2
+    with pytest.raises(SystemExit):
+        main(["synth", "--out", str(tmp_path), "--chunk-scenes", "0"])
+    with pytest.raises(ValueError, match="chunk_scenes"):
+        synthesize(tmp_path, **{**ARGS, "chunk_scenes": 0})

@@ -215,9 +215,9 @@ def index_chunks(stage_dir: str | os.PathLike) -> dict[str, str]:
 
 
 class ChunkWriter:
-    """Write scenes into ``<root>/<stage>/NNNNNN.torch`` chunks of about ``chunk_bytes`` each,
-    plus ``index.json`` (written atomically after every chunk, so a killed writer leaves a
-    consistent dataset).
+    """Write scenes into ``<root>/<stage>/NNNNNN.torch`` chunks of about ``chunk_bytes`` each
+    (and at most ``chunk_scenes`` scenes each, when given), plus ``index.json`` (written
+    atomically after every chunk, so a killed writer leaves a consistent dataset).
 
     Examples:
         >>> import tempfile
@@ -228,10 +228,14 @@ class ChunkWriter:
         {'a': '000000.torch'}
     """
 
-    def __init__(self, root: str | os.PathLike, stage: str, chunk_bytes: int = 100_000_000):
+    def __init__(self, root: str | os.PathLike, stage: str, chunk_bytes: int = 100_000_000,
+                 chunk_scenes: int | None = None):
+        if chunk_scenes is not None and chunk_scenes < 1:
+            raise ValueError(f"chunk_scenes must be >= 1 (or None: no limit), got {chunk_scenes}")
         self.stage_dir = Path(root) / stage
         self.stage_dir.mkdir(parents=True, exist_ok=True)
         self.chunk_bytes = chunk_bytes
+        self.chunk_scenes = chunk_scenes
         self.index: dict[str, str] = {}
         self._pending: list[dict] = []
         self._pending_bytes = 0
@@ -243,7 +247,7 @@ class ChunkWriter:
             raise ValueError(f"scene key {scene['key']!r} written twice")
         self._pending.append(scene)
         self._pending_bytes += _nbytes(scene)
-        if self._pending_bytes >= self.chunk_bytes:
+        if self._pending_bytes >= self.chunk_bytes or len(self._pending) == self.chunk_scenes:
             self.flush()
 
     def flush(self) -> None:

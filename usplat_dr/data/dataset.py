@@ -1,16 +1,27 @@
 """Streaming the field's datasets (RealEstate10K, ACID, DTU, our synthetic sets) into examples.
 
-``ChunkDataset`` is a torch ``IterableDataset`` over pixelSplat chunks. Chunks are split across
-distributed ranks and DataLoader workers without duplicates (chunk ``i`` goes to global worker
-``i mod (ranks x workers)``); in training, chunk order and the scenes inside each chunk are
-shuffled with a seed that depends on the epoch (``set_epoch``), identical on every rank.
+``ChunkDataset`` is a torch ``IterableDataset`` over pixelSplat chunks, split across distributed
+ranks and DataLoader workers ("global workers": ``ranks x workers`` of them). One process
+without workers reads every chunk in turn. With several global workers the data is sharded
+by scene, like torch's ``DistributedSampler``: the scenes of ``index.json`` are listed chunk by
+chunk (in training, chunk order and the scenes inside each chunk are shuffled with a seed that
+depends on the epoch, ``set_epoch``, identical on every rank), the list is padded by wrapping
+around to a multiple of the global workers, and global worker ``g`` takes the ``g``-th
+contiguous block. So every worker gets examples whatever the number of chunks (a one-chunk set
+trains on 8 ranks), no scene is seen twice in an epoch except the fewer than ``ranks x
+workers`` padding repeats, every worker yields the same number of examples (so every rank
+takes the same number of batches an epoch), and a worker reads only the chunks its block spans
+(at most two of them shared with another worker). Evaluation stages are not padded (no scene
+counted twice).
 
 Bad data never stops a run and is never silently lost: an unreadable chunk, a malformed
 record, a corrupt image, a scene missing from ``index.json``, a camera with NaN or a singular
 rotation are each skipped with one warning naming the file and scene, and counted in the
 summary logged at the end of every pass (``ChunkDataset.last_summary`` in the main process).
 Expected skips (too few frames for the sampler, no evaluation-index entry, FOV over
-``max_fov``, unexpected image shape) are counted without a warning.
+``max_fov``, unexpected image shape) are counted without a warning. A skipped scene shortens
+its worker's pass by one example: the training stream (``usplat_dr.training.trainer.Batches``)
+is endless, so a rank whose pass ends early starts its next epoch early, never waits.
 """
 
 import collections
@@ -100,7 +111,8 @@ class Summary(collections.Counter):
     """Counts of examples and skip reasons over one pass."""
 
     WARN = ("unreadable chunk", "malformed scene", "bad camera", "corrupt image",
-            "not in index.json", "missing chunk file", "bad depth")
+            "not in index.json", "missing chunk file", "bad depth", "not in its chunk",
+            "chunk not in index.json")
 
     def line(self) -> str:
         skips = ", ".join(f"{n} {k}" for k, n in sorted(self.items()) if k != "examples")
@@ -156,40 +168,97 @@ class ChunkDataset(IterableDataset):
         """Scenes in the index (an upper bound on the examples one pass yields)."""
         return len(self.index)
 
-    def _my_chunks(self) -> tuple[list[Path], int, int]:
+    def _global_worker(self) -> tuple[int, int]:
+        """This process's global worker id and the number of global workers (ranks x
+        DataLoader workers)."""
         rank, world = _distributed()
         rank = self.rank if self.rank is not None else rank
         world = self.world_size if self.world_size is not None else world
         info = get_worker_info()
         wid, nworkers = (info.id, info.num_workers) if info is not None else (0, 1)
-        gid, total = rank * nworkers + wid, world * nworkers
+        return rank * nworkers + wid, world * nworkers
+
+    def shard(self, gid: int, total: int) -> list[tuple[Path, set[str] | None, bool]]:
+        """What global worker ``gid`` of ``total`` reads this epoch, chunk by chunk:
+        ``(chunk, keys, reports)`` with the scene keys it takes from the chunk (``None``: all)
+        and whether it reports the chunk's own faults (unreadable, records of no scene in
+        ``index.json``), so that each is reported once. See the module docstring.
+
+        Examples:
+            >>> ds = ChunkDataset.__new__(ChunkDataset)  # a 5-scene, 2-chunk set, by hand
+            >>> ds.stage, ds.epoch, ds.chunks = "test", 0, [Path("a.torch"), Path("b.torch")]
+            >>> ds.index = {"s0": Path("a.torch"), "s1": Path("a.torch"), "s2": Path("a.torch"),
+            ...             "s3": Path("b.torch"), "s4": Path("b.torch")}
+            >>> [(c.name, sorted(k)) for c, k, _ in ds.shard(1, 2)]  # blocks of 3: s0-s2 | s3 s4
+            [('b.torch', ['s3', 's4'])]
+        """
         chunks = list(self.chunks)
         if self.stage == "train":
-            perm = torch.randperm(len(chunks),
-                                  generator=torch.Generator().manual_seed(_seed(self.cfg.seed,
-                                                                                self.epoch)))
+            perm = torch.randperm(len(chunks), generator=torch.Generator().manual_seed(
+                _seed(self.cfg.seed, self.epoch)))
             chunks = [chunks[i] for i in perm]
-        return chunks[gid::total], gid, total
+        if total == 1:  # every chunk, whole (and the order of runs before scene sharding)
+            return [(c, None, True) for c in chunks]
+        by_chunk = collections.defaultdict(list)
+        for key, path in self.index.items():
+            by_chunk[path].append(key)
+        scenes: list[tuple[Path, str]] = []
+        reporter: dict[Path, int] = {}  # chunk -> the block holding its first scene
+        per = -(-sum(len(by_chunk[c]) for c in chunks) // total)  # scenes per worker
+        for c in chunks:
+            keys = sorted(by_chunk[c])
+            if self.stage == "train":
+                perm = torch.randperm(len(keys), generator=torch.Generator().manual_seed(
+                    _seed(self.cfg.seed, self.epoch, c.name)))
+                keys = [keys[i] for i in perm]
+            if keys:
+                reporter[c] = len(scenes) // per
+            scenes += [(c, k) for k in keys]
+        if self.stage == "train" and scenes:
+            # DistributedSampler's padding: wrap around, so every worker takes ``per`` scenes
+            scenes = [scenes[i % len(scenes)] for i in range(per * total)]
+        block = scenes[gid * per:(gid + 1) * per]
+        wanted: dict[Path, set[str]] = {}
+        for c, key in block:  # in block order; a key is in a block at most once (per <= S)
+            wanted.setdefault(c, set()).add(key)
+        return [(c, keys, reporter[c] == gid) for c, keys in wanted.items()]
 
     def __iter__(self):
-        chunks, gid, total = self._my_chunks()
+        gid, total = self._global_worker()
         gen = torch.Generator().manual_seed(_seed(self.cfg.seed, self.epoch, gid, self.stage))
         summary = Summary()
         summary["missing chunk file"] = len(self.missing_chunks) if gid == 0 else 0
-        for chunk_path in chunks:
+        if total > 1 and gid == 0:
+            indexed = set(self.index.values())
+            for c in (c for c in self.chunks if c not in indexed):
+                log.warning("skipping chunk %s: it holds no scene of index.json", c)
+                summary["chunk not in index.json"] += 1
+        for chunk_path, wanted, reports in self.shard(gid, total):
             try:
                 scenes = read_chunk(chunk_path)
             except BadChunkError as e:
-                log.warning("skipping chunk: %s", e)
-                summary["unreadable chunk"] += 1
+                if reports:
+                    log.warning("skipping chunk: %s", e)
+                    summary["unreadable chunk"] += 1
                 continue
             order = (torch.randperm(len(scenes), generator=gen).tolist()
                      if self.stage == "train" else range(len(scenes)))
             for i in order:
-                example = self._example(scenes[i], chunk_path, gen, summary)
+                scene = scenes[i]
+                if wanted is not None:
+                    key = scene.get("key") if isinstance(scene, dict) else None
+                    if isinstance(key, str) and key in wanted:
+                        wanted.discard(key)
+                    elif not (reports and not (isinstance(key, str) and key in self.index)):
+                        continue  # another worker's scene (or another chunk's, by the index)
+                example = self._example(scene, chunk_path, gen, summary)
                 if example is not None:
                     summary["examples"] += 1
                     yield example
+            for key in sorted(wanted or ()):
+                log.warning("skipping scene %s: index.json places it in %s, which does not "
+                            "hold it", key, chunk_path)
+                summary["not in its chunk"] += 1
         self.last_summary = summary
         worker = f" (worker {gid} of {total})" if total > 1 else ""
         log.info("%s %s epoch %d%s: %s", self.cfg.name, self.stage, self.epoch, worker,

@@ -26,6 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stage", default="test", choices=["train", "test"],
                    help="stage folder to write")
     p.add_argument("--previews", type=int, default=8, help="scenes to write preview PNGs for")
+    p.add_argument("--chunk-scenes", type=positive_int, default=None, metavar="N",
+                   help="at most N scenes per chunk file (default: chunks of up to 100 MB). "
+                   "Training shards by scene, so any number of chunks trains on any number "
+                   "of ranks; smaller chunks let each DataLoader worker read less")
     p.add_argument("--jobs", type=non_negative_int, default=0,
                    help="worker processes rendering scenes in parallel (0: one per core, at "
                    "most one per 4 scenes; the bytes written do not depend on it)")
@@ -37,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
                          resolution=tuple(args.resolution), seed=args.seed,
                          kinds=tuple(args.kind), spp=args.spp, backend=args.backend,
                          stage=args.stage, previews=args.previews, progress=not args.quiet,
-                         jobs=args.jobs or min(os.cpu_count() or 1, max(1, args.scenes // 4)))
+                         jobs=args.jobs or min(os.cpu_count() or 1, max(1, args.scenes // 4)),
+                         chunk_scenes=args.chunk_scenes)
     dt = time.perf_counter() - t0
     print(f"wrote {args.scenes} scenes x {args.frames} frames to {args.out} in {dt:.1f} s "
           f"({60 * args.scenes / dt:.1f} scenes/min)")

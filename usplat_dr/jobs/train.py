@@ -1,11 +1,14 @@
 """``usplat train``: train UniqueSplat (any variant) with the field's recipe, on one process or
-under ``torchrun`` (DistributedDataParallel)."""
+under ``torchrun`` (DistributedDataParallel). Prints the result as one JSON line per rank
+(``step``, ``loss``, ``rank``, ``params_sha256``...). Under torchrun a failing rank ends the run
+with one line naming it and the cause; the other ranks exit quietly (status 1)."""
 
 import argparse
 import json
+import sys
 
 from usplat_dr.config import load_config
-from usplat_dr.training import train
+from usplat_dr.training import RankFailed, train
 from usplat_dr.training.config import RootCfg
 
 
@@ -22,8 +25,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # a bad file, key or value: a ConfigError naming it, before anything is built (the CLI
-    # prints it as one line)
+    # prints it as one line, exit status 2)
     cfg = RootCfg.load(load_config(args.config or ["synthetic_tiny.yaml"], args.overrides))
-    result = train(cfg, resume=args.resume)
-    print(json.dumps(result))
+    try:
+        result = train(cfg, resume=args.resume)
+    except RankFailed as e:  # under torchrun: one message, from the rank that failed
+        raise SystemExit(f"usplat train: {e}" if e.own else 1) from None
+    # one write per line: under torchrun the ranks share the launcher's stdout
+    sys.stdout.write(json.dumps(result) + "\n")
+    sys.stdout.flush()
     return 0

@@ -1,8 +1,21 @@
 """Processes and random state: rank, world size and device under ``torchrun`` (gloo on CPU,
-nccl on GPU), threads per rank, and the RNG states a checkpoint saves."""
+nccl on GPU), threads per rank, the RNG states a checkpoint saves, and how a run ends when one
+of its ranks fails.
 
+A failing rank must end the whole run with one message naming it and the cause, not with the
+others' collective errors ("Connection closed by peer"). ``rank_failure`` is called on every
+rank whose training raised: the first posts its message in the process group's store (the
+torchrun agent's, which outlives the workers) before it exits, so a rank whose collective then
+breaks finds the message there and stops quietly; both write it to torchrun's error file
+(``TORCHELASTIC_ERROR_FILE``), which torchrun's closing summary prints.
+"""
+
+import hashlib
+import json
+import logging
 import os
 import random
+import time
 
 import drjit as dr
 import numpy as np
@@ -12,11 +25,14 @@ import torch.distributed as dist
 from usplat_dr.backend import require_llvm
 from usplat_dr.config import ConfigError
 
+log = logging.getLogger(__name__)
+
 
 def setup_distributed(device: str, threads: int | None = None
                       ) -> tuple[int, int, torch.device]:
     """Rank, world size and device; initialises the process group under torchrun. CPU threads
-    of torch and Dr.Jit per process: ``threads``, or the cores divided by the ranks."""
+    of torch and Dr.Jit per process: ``threads``, or the cores divided by this machine's
+    ranks."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     if device == "cuda":
@@ -31,8 +47,10 @@ def setup_distributed(device: str, threads: int | None = None
         raise ConfigError(f"device must be 'cpu' or 'cuda', got {device!r}")
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if device == "cuda" else "gloo")
-    # Share the cores between ranks so they do not oversubscribe them.
-    threads = threads or max(1, (os.cpu_count() or 1) // world)
+    # Share the machine's cores between its ranks (torchrun's LOCAL_WORLD_SIZE; not all ranks
+    # of a multi-node run) so they do not oversubscribe them.
+    ranks_here = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
+    threads = threads or max(1, (os.cpu_count() or 1) // ranks_here)
     torch.set_num_threads(threads)
     if device == "cpu":
         require_llvm()  # pins Dr.Jit's target now (USPLAT_PORTABLE), before any kernel
@@ -64,3 +82,87 @@ def set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def gather(obj: object) -> list:
+    """Every rank's ``obj`` in rank order (``[obj]`` outside a process group). A collective:
+    every rank must call it at the same point."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return [obj]
+    out = [None] * dist.get_world_size()
+    dist.all_gather_object(out, obj)
+    return out
+
+
+def parameter_digest(model: torch.nn.Module) -> str:
+    """A short SHA-256 of the model's parameters (names and bytes, not buffers): equal digests,
+    equal weights. Under DDP every rank must end with the same one (``Trainer.fit`` checks).
+
+    Examples:
+        >>> a, b = torch.nn.Linear(2, 1), torch.nn.Linear(2, 1)
+        >>> b.load_state_dict(a.state_dict())
+        <All keys matched successfully>
+        >>> parameter_digest(a) == parameter_digest(b), len(parameter_digest(a))
+        (True, 16)
+    """
+    h = hashlib.sha256()
+    for name, p in model.named_parameters():
+        h.update(name.encode())
+        h.update(p.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+class RankFailed(RuntimeError):
+    """A rank of a distributed run failed. The message names the rank and the cause; ``own``
+    is true on the failing rank, false on a rank that stopped because of it."""
+
+    def __init__(self, message: str, own: bool):
+        super().__init__(message)
+        self.own = own
+
+
+def _failure_key() -> str:
+    # a new key for each torchrun restart (the agent's store outlives the workers)
+    return f"usplat/failure/{os.environ.get('TORCHELASTIC_RESTART_COUNT', '0')}"
+
+
+def _store():
+    if not (dist.is_available() and dist.is_initialized()):
+        return None
+    try:
+        return dist.distributed_c10d._get_default_store()
+    except (RuntimeError, ValueError):
+        return None
+
+
+def _write_error_file(message: str, timestamp: int) -> None:
+    """torchrun's error file (the format of torch.distributed.elastic's ``record``), so that its
+    summary shows ``message`` instead of "To enable traceback see ..."."""
+    path = os.environ.get("TORCHELASTIC_ERROR_FILE")
+    if not path:
+        return
+    data = {"message": {"message": message, "extraInfo": {"timestamp": str(timestamp)}}}
+    try:
+        with open(path, "w") as f:
+            json.dump(data, f)
+    except OSError as e:
+        log.warning("cannot write torchrun's error file %s: %s", path, e)
+
+
+def rank_failure(exc: BaseException, rank: int, world: int, step: int | None) -> RankFailed:
+    """What ends this rank after ``exc`` in a run of ``world`` ranks: the failure another rank
+    posted first (``own`` false: this rank's error is the broken collective that followed),
+    else this rank's own, posted for the others (first come, first posted: the store's
+    compare-and-set). ``step``: where it happened, when known."""
+    at = f" at step {step}" if step is not None else ""
+    mine = {"rank": rank, "message": f"rank {rank} of {world} failed{at}: "
+            f"{type(exc).__name__}: {exc}", "timestamp": int(time.time())}
+    posted = mine
+    store = _store()
+    if store is not None:
+        try:
+            posted = json.loads(store.compare_set(_failure_key(), "", json.dumps(mine)))
+        except (RuntimeError, ValueError) as e:  # the store went with its host (rank 0)
+            log.debug("cannot reach the process group's store: %s", e)
+    _write_error_file(posted["message"], posted["timestamp"])
+    return RankFailed(posted["message"], own=posted["rank"] == rank)

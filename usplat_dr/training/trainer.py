@@ -4,9 +4,15 @@
 
 Nothing is lost: checkpoints are written atomically every ``train.checkpoint_every`` steps and
 on SIGINT/SIGTERM; ``resume`` continues exactly (model, optimiser, scheduler, step, RNG states,
-data position). A step with a non-finite loss or gradient is skipped with a warning and
-counted; ``train.max_nonfinite`` of them in a row stop the run with a message and a checkpoint
-of the last good state.
+data position: each rank's own, under torchrun). A step with a non-finite loss or gradient is
+skipped with a warning and counted; ``train.max_nonfinite`` of them in a row stop the run with a
+message and a checkpoint of the last good state.
+
+Under torchrun every rank reads its own shard of the data (``usplat_dr.data.dataset``), takes
+``data_loader.batch_size`` examples a step (the global batch is ranks x batch_size) and steps
+with the gradient averaged over the ranks; the learning rate is used as configured, not scaled
+with the ranks. All ranks stop after the same step on a signal; a rank that fails ends the
+run with one message naming it (``usplat_dr.training.distributed.rank_failure``).
 """
 
 import csv
@@ -37,7 +43,14 @@ from usplat_dr.geometry.cameras import pixel_centres
 from usplat_dr.io import torch_save
 from usplat_dr.training.checkpoints import read_usplat_checkpoint
 from usplat_dr.training.config import RootCfg, model_from_config
-from usplat_dr.training.distributed import rng_state, set_rng_state, setup_distributed
+from usplat_dr.training.distributed import (
+    gather,
+    parameter_digest,
+    rank_failure,
+    rng_state,
+    set_rng_state,
+    setup_distributed,
+)
 
 log = logging.getLogger(__name__)
 
@@ -202,14 +215,19 @@ class Trainer:
         return self.out / "checkpoints" / "last.ckpt"
 
     def save(self) -> Path | None:
-        """Write the checkpoint atomically (rank 0; other ranks return ``None``)."""
+        """Write the checkpoint atomically (rank 0; other ranks return ``None``). Under
+        torchrun every rank calls it at the same step: it gathers each rank's data position
+        and RNG states (``ranks``), so that each resumes exactly where it was."""
+        ranks = gather({"data": self.batches.state(), "rng": rng_state()})
         if self.rank != 0:
             return None
         state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
                  "scheduler": self.scheduler.state_dict(), "step": self.step,
-                 "rng": rng_state(), "data": self.batches.state(), "skipped": self.skipped,
+                 "rng": ranks[0]["rng"], "data": ranks[0]["data"], "skipped": self.skipped,
                  "config": self.cfg, "model_config": self.model.cfg.to_dict(),
                  "provenance": self.provenance}
+        if self.world > 1:
+            state["ranks"] = ranks
         return torch_save(state, self.checkpoint_path)
 
     def resume(self, path: str | os.PathLike | None = None) -> bool:
@@ -226,8 +244,14 @@ class Trainer:
         self.scheduler.load_state_dict(state["scheduler"])
         self.step, self.skipped = state["step"], state["skipped"]
         self.step_tracker.set_step(self.step)
-        self.batches.restore(state["data"])
-        set_rng_state(state["rng"])
+        ranks = state.get("ranks") or [{"data": state["data"], "rng": state["rng"]}]
+        if len(ranks) != self.world:
+            log.warning("%s was written by %d rank(s), this run has %d: every rank resumes "
+                        "rank 0's data position and random state, so the data order is not "
+                        "an uninterrupted run's", path, len(ranks), self.world)
+        mine = ranks[self.rank] if len(ranks) == self.world else ranks[0]
+        self.batches.restore(mine["data"])
+        set_rng_state(mine["rng"])
         log.info("resumed from %s at step %d", path, self.step)
         return True
 
@@ -402,7 +426,8 @@ class Trainer:
                     stop = bool(flag > 0)
                 if stop:
                     self.save()
-                    log.warning("stopped by signal %s at step %d; resume with --resume",
+                    who = f"rank {self.rank} " if self.world > 1 else ""
+                    log.warning("%sstopped by signal %s at step %d; resume with --resume", who,
                                 self._stop_signal, self.step)
                     break
         finally:
@@ -414,7 +439,13 @@ class Trainer:
                 f.close()
             if board is not None:
                 board.close()
-        return {"step": self.step, "skipped": self.skipped, **last}
+        digest = parameter_digest(self.model)
+        if len(set(gather(digest))) > 1:  # DDP keeps them equal; if not, say so
+            log.error("rank %d: the ranks hold different parameters after step %d (digests "
+                      "%s); the checkpoint holds rank 0's", self.rank, self.step,
+                      gather(digest))
+        return {"step": self.step, "skipped": self.skipped, "rank": self.rank,
+                "params_sha256": digest, **last}
 
     def validation_batch(self, fallback: dict) -> dict:
         """The first example of the validation stage (the dataset's test folder) when there
@@ -443,11 +474,28 @@ class Trainer:
 
 def train(cfg: dict | RootCfg, resume: bool = False) -> dict:
     """Train with ``cfg`` (see ``Trainer``), from the last checkpoint when ``resume`` and one
-    exists; returns the last step's statistics (``step``, ``skipped``, ``loss``, ``psnr``...)."""
-    trainer = Trainer(cfg)
-    if resume and not trainer.resume():
-        log.info("no checkpoint in %s: starting from step 0", trainer.checkpoint_path.parent)
-    result = trainer.fit()
+    exists; returns the last step's statistics (``step``, ``skipped``, ``loss``, ``psnr``,
+    ``rank``, ``params_sha256``...).
+
+    Under torchrun, an exception on any rank becomes ``RankFailed`` on every rank, with the
+    message of the rank that failed first (``usplat_dr.training.distributed.rank_failure``);
+    its traceback is logged there, unless it is a ``ConfigError`` (data and configuration
+    errors, whose message says it all) or ``TrainingStopped``."""
+    trainer = None
+    try:
+        trainer = Trainer(cfg)
+        if resume and not trainer.resume():
+            log.info("no checkpoint in %s: starting from step 0", trainer.checkpoint_path.parent)
+        result = trainer.fit()
+    except Exception as e:
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world <= 1:
+            raise
+        rank = int(os.environ.get("RANK", "0"))
+        failure = rank_failure(e, rank, world, trainer.step if trainer is not None else None)
+        if failure.own and not isinstance(e, (ConfigError, TrainingStopped)):
+            log.error("rank %d: traceback of the failure", rank, exc_info=e)
+        raise failure from e
     if dist.is_initialized():
         dist.destroy_process_group()
     return result

@@ -90,11 +90,14 @@ def _rendered(jobs_list: list[tuple], jobs: int):
 def synthesize(out: str | os.PathLike, scenes: int, frames: int,
                resolution: tuple[int, int], seed: int = 0, kinds: tuple[str, ...] = KINDS,
                spp: int = 64, backend: str = "llvm", stage: str = "test",
-               previews: int = 8, progress: bool = True, jobs: int = 1) -> dict:
+               previews: int = 8, progress: bool = True, jobs: int = 1,
+               chunk_scenes: int | None = None) -> dict:
     """Render ``scenes`` procedural scenes of ``frames`` frames each (kinds round-robin) and
     write them as a dataset under ``out``. Deterministic: the same arguments give the same
     bytes on the LLVM backend, for any ``jobs`` (scenes rendered by that many worker
     processes, for machines where one Mitsuba process does not keep every core busy).
+    Chunks hold up to 100 MB of scenes, and at most ``chunk_scenes`` scenes when given
+    (training shards by scene, so any number of chunks feeds any number of ranks).
     Returns the split summary (split -> number of scenes in it).
 
     Examples:
@@ -114,6 +117,9 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
             raise ValueError(f"kinds must be among {KINDS}, got {k!r}")
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1 (worker processes), got {jobs}")
+    if chunk_scenes is not None and chunk_scenes < 1:
+        raise ValueError(f"chunk_scenes must be >= 1 (or None: chunks of up to 100 MB), got "
+                         f"{chunk_scenes}")
     out = Path(out)
     splits: dict[str, dict] = {s: {} for s in SPLITS}
     measurements = {}
@@ -123,7 +129,7 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     seeds = [scene_seed(seed, i) for i in range(scenes)]
     specs = [make_spec(kinds[i % len(kinds)], s, frames) for i, s in enumerate(seeds)]
     work = [(spec, (h, w), spp, s, backend) for spec, s in zip(specs, seeds)]
-    with ChunkWriter(out, stage, chunk_bytes=100_000_000) as writer:
+    with ChunkWriter(out, stage, chunk_bytes=100_000_000, chunk_scenes=chunk_scenes) as writer:
         for i, (spec, s, rendered) in enumerate(zip(specs, seeds, _rendered(work, jobs))):
             images, depths, materials, intr = rendered
             kind = spec["kind"]
@@ -144,8 +150,10 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
         write_json(out / f"evaluation_index_{name}.json", index)
     summary = {name: sum(e is not None for e in index.values()) for name, index in splits.items()}
     write_json(out / "splits.json", {"scenes_per_split": summary, "scenes": measurements})
-    write_json(out / "synth.json", {"scenes": scenes, "frames": frames, "resolution": [h, w],
-                                    "seed": seed, "kinds": list(kinds), "spp": spp,
-                                    "stage": stage})
+    arguments = {"scenes": scenes, "frames": frames, "resolution": [h, w], "seed": seed,
+                 "kinds": list(kinds), "spp": spp, "stage": stage}
+    if chunk_scenes is not None:  # (absent by default: earlier sets keep their bytes)
+        arguments["chunk_scenes"] = chunk_scenes
+    write_json(out / "synth.json", arguments)
     log.info("wrote %d scenes to %s; scenes per split: %s", scenes, out, summary)
     return summary
