@@ -166,3 +166,34 @@ def test_missing_root_and_empty_stage_are_clear_errors(tmp_path):
         ChunkDataset(dataset_cfg("re10k", tmp_path), "training")
     with pytest.raises(ValueError, match="name must be one of"):
         dataset_cfg("imagenet", tmp_path)
+
+
+def test_dtu_runs_each_scene_under_numbered_keys(tmp_path):
+    # MVSplat's DTU conversion writes one record per scan (key "scan1_train", PNG images of
+    # 512 x 640), and its evaluation index names scan1_train_00 .. scan1_train_03: its loader
+    # runs each scene test_times_per_scene = 4 times, appending _NN to the key.
+    import json
+
+    from tests.data.fakes import fake_scene, write_plain_dataset
+    from usplat_dr.data.dataset import dataset_from_section
+
+    scenes = [fake_scene(f"scan{i}_train", 10, shape=(64, 80), fmt="png", seed=i, fx=0.9)
+              for i in (1, 4)]
+    assert all(bytes(img[:8].tolist()) == b"\x89PNG\r\n\x1a\n" for img in scenes[0]["images"])
+    write_plain_dataset(tmp_path, "test", [scenes])
+    runs = {f"scan1_train_{t:02d}": {"context": [t, t + 4], "target": [t + 2]}
+            for t in range(4)}
+    runs.update({f"scan4_train_{t:02d}": None for t in range(4)})
+    (tmp_path / "index_dtu.json").write_text(json.dumps(runs))
+    section = {"name": "dtu", "roots": [str(tmp_path)], "image_shape": [32, 32],
+               "evaluation_index": str(tmp_path / "index_dtu.json")}
+    examples = list(dataset_from_section(section, "test"))
+    assert [e["scene"] for e in examples] == [f"scan1_train_{t:02d}" for t in range(4)]
+    for t, e in enumerate(examples):
+        assert e["context"]["index"].tolist() == [t, t + 4]
+        assert e["target"]["index"].tolist() == [t + 2]
+        assert e["context"]["near"][0] == 2.125 and e["context"]["far"][0] == 4.525
+    # without the setting the scans' own keys are looked up, and the index has none of them
+    plain = dataset_from_section({**section, "overrides": {"test_times_per_scene": 1}}, "test")
+    assert list(plain) == []
+    assert plain.last_summary["sampler: no views"] == 2

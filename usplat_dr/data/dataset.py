@@ -78,6 +78,10 @@ class DatasetCfg:
     original_image_shape: tuple[int, int] = (360, 640)
     view_sampler: ViewSamplerCfg = field(default_factory=ViewSamplerBoundedCfg)
     seed: int = 1234
+    # Test stage: each scene is used this many times, as example ``<key>_00``, ``<key>_01``,
+    # ... (MVSplat's ``test_times_per_scene``: its DTU evaluation index names scan1_train_00
+    # .. scan1_train_03 for the one record scan1_train). 1: the key as it is.
+    test_times_per_scene: int = 1
 
 
 # docs/field_protocol.md, "Data": RE10K and ACID near 1 / far 100 with 360x640 JPEGs; DTU near
@@ -86,7 +90,7 @@ class DatasetCfg:
 PRESETS = {
     "re10k": dict(near=1.0, far=100.0, skip_bad_shape=True, original_image_shape=(360, 640)),
     "acid": dict(near=1.0, far=100.0, skip_bad_shape=True, original_image_shape=(360, 640)),
-    "dtu": dict(near=2.125, far=4.525, skip_bad_shape=False),
+    "dtu": dict(near=2.125, far=4.525, skip_bad_shape=False, test_times_per_scene=4),
     "synth": dict(near=None, far=None, skip_bad_shape=False),
 }
 
@@ -251,10 +255,11 @@ class ChunkDataset(IterableDataset):
                         wanted.discard(key)
                     elif not (reports and not (isinstance(key, str) and key in self.index)):
                         continue  # another worker's scene (or another chunk's, by the index)
-                example = self._example(scene, chunk_path, gen, summary)
-                if example is not None:
-                    summary["examples"] += 1
-                    yield example
+                for run in self._runs(scene):
+                    example = self._example(scene, chunk_path, gen, summary, run)
+                    if example is not None:
+                        summary["examples"] += 1
+                        yield example
             for key in sorted(wanted or ()):
                 log.warning("skipping scene %s: index.json places it in %s, which does not "
                             "hold it", key, chunk_path)
@@ -264,8 +269,19 @@ class ChunkDataset(IterableDataset):
         log.info("%s %s epoch %d%s: %s", self.cfg.name, self.stage, self.epoch, worker,
                  summary.line())
 
+    def _runs(self, scene) -> list[str | None]:
+        """The example keys a scene gives: ``[None]`` (its own key), or in the test stage with
+        ``test_times_per_scene`` = T > 1, ``<key>_00`` .. ``<key>_(T-1)``."""
+        times = self.cfg.test_times_per_scene if self.stage == "test" else 1
+        key = scene.get("key") if isinstance(scene, dict) else None
+        if times <= 1 or not isinstance(key, str):
+            return [None]
+        return [f"{key}_{t:02d}" for t in range(times)]
+
     def _example(self, scene: dict, chunk_path: Path, gen: torch.Generator,
-                 summary: Summary) -> dict | None:
+                 summary: Summary, run: str | None = None) -> dict | None:
+        """One example of ``scene``; ``run``: the key it goes by (``_runs``), default the
+        scene's own."""
         key = scene.get("key", "?") if isinstance(scene, dict) else "?"
 
         def skip(reason: str, detail: str = "") -> None:
@@ -286,7 +302,7 @@ class ChunkDataset(IterableDataset):
             return skip("bad camera", str(e))
         num_views = extrinsics.shape[0]
         try:
-            ctx, tgt = self.view_sampler.sample(key, num_views, gen)
+            ctx, tgt = self.view_sampler.sample(run or key, num_views, gen)
         except ViewSamplingError:
             return skip("sampler: no views")
         if (fov_degrees(intrinsics) > self.cfg.max_fov).any():
@@ -324,7 +340,7 @@ class ChunkDataset(IterableDataset):
                 v["depth"] = scene["depths"][indices].float()
             return v
 
-        example = {"context": views(ctx), "target": views(tgt), "scene": key}
+        example = {"context": views(ctx), "target": views(tgt), "scene": run or key}
         if "depths" in scene and tuple(scene["depths"].shape[1:]) != shapes.pop():
             return skip("bad depth", "depth maps and images differ in shape")
         if self.cfg.make_baseline_1:
