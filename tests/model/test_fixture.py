@@ -1,12 +1,12 @@
 """The primary network against the official MVSplat code: the dev fixture's inputs with the
 deterministic weights give the fixture's intermediates and outputs, stage by stage.
 
-Tolerances are the fixture README's acceptance rule (sec. 4), ``max|actual - expected| <= rel *
-max|expected|``: rel 1e-4 for features, cost volume, pdf, head outputs, densities, harmonics
-and camera-derived tensors; 5e-4 for depths, means, covariances, scales and rotations (they
-amplify depth errors). The README measured the official code's own float32 spread (threads,
-scalar kernels, float64) at >= 6-8x below these; a real bug (view order, half-pixel offset, group
-count, SH layout) gives 1e-2 or more.
+Tolerances are the acceptance rule in tests/fixtures/README.md ("Tolerances"),
+``max|actual - expected| <= rel * max|expected|``: rel 1e-4 for features, cost volume, pdf,
+head outputs, densities, harmonics and camera-derived tensors; 5e-4 for depths, means,
+covariances, scales and rotations (they amplify depth errors). That section lists the official
+code's own measured float32 spread (threads, scalar kernels, float64) at >= 6-8x below these;
+a real bug (view order, half-pixel offset, group count, SH layout) gives 1e-2 or more.
 """
 
 import pytest
@@ -38,7 +38,7 @@ def run(net, fixture_dev):
 
 def test_weights_are_the_fixtures(weights, fixture_dev):
     # Per-key float64 sum and sum of squares of the weights the fixture was made with; the
-    # README: ~1e-7 relative is the scalar-vs-vector RNG path, more means other weights.
+    # tests/fixtures/README.md: ~1e-7 relative is the scalar-vs-vector RNG path, more means other weights.
     fp = fingerprint({"encoder." + k: v for k, v in weights.items()})
     for key, (s, ss) in fixture_dev["weights_fingerprint"].items():
         assert abs(fp[key][1] - ss) <= 1e-5 * abs(ss), key
@@ -79,7 +79,7 @@ def test_heads(run, fixture_dev):
     check(fixture_dev, "densities", depth.densities, 1e-4)
     check(fixture_dev, "depths", depth.depths, 5e-4)
     rel = (depth.depths.double() - fixture_dev["depths"]).abs() / fixture_dev["depths"]
-    assert rel.max() <= 5e-4  # the README's elementwise rule for depths
+    assert rel.max() <= 5e-4  # tests/fixtures/README.md's elementwise rule for depths
 
 
 def test_gaussians(run, fixture_dev):
@@ -90,8 +90,8 @@ def test_gaussians(run, fixture_dev):
 
 
 def test_gaussian_adapter_in_isolation(fixture_dev):
-    # The adapter alone, from the stored raw head output, depths and densities: the README's
-    # relations are exact in float32, so only rounding differences remain.
+    # The adapter alone, from the stored raw head output, depths and densities: the adapter's
+    # formulas are the same float32 ones, so only rounding differences remain.
     fx = fixture_dev
     raw = fx["raw_to_gaussians"].view(2, 1, 84, 4096).permute(1, 0, 3, 2)  # [B, V, HW, C]
     opac = 0.5 * (1 - (1 - fx["densities"]) + fx["densities"])
@@ -105,5 +105,5 @@ def test_gaussian_adapter_in_isolation(fixture_dev):
 
 def test_sh_rotation_case(fixture_dev):
     case = fixture_dev["sh_rotation_case"]
-    # 2e-6 x ~3.3: the README measured float64 vs MVSplat's float32 e3nn at 6.3e-6 absolute.
+    # 2e-6 x ~3.3: tests/fixtures/README.md gives float64 vs MVSplat's float32 e3nn at 6.3e-6 absolute.
     check(case, "sh_rotated", rotate_sh(case["sh"], case["rotation"]), 3e-6)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from tests.model.conftest import two_view_cameras
+from usplat_dr.data.types import SceneInputs
 from usplat_dr.model import CheckpointMismatchError, PrimaryNetwork, UniqueSplat
 from usplat_dr.model.hypernet.resnet import ResNet18
 from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, UniqueSplatCfg
@@ -30,8 +31,8 @@ def scene(size: int = 64, n: int = 3, seed: int = 0, b: int = 1):
     te[:, :, 1, 3] = 0.02 * torch.arange(n)
     tk = k[:, :1].expand(b, n, 3, 3).clone()
     images = torch.rand(b, 2, 3, size, size, generator=g)
-    return (images, k, e, torch.ones(b, 2), 100 * torch.ones(b, 2), tk, te, torch.ones(b, n),
-            100 * torch.ones(b, n))
+    return SceneInputs(images, k, e, torch.ones(b, 2), 100 * torch.ones(b, 2), tk, te,
+                       torch.ones(b, n), 100 * torch.ones(b, n))
 
 
 FIELDS = ("means", "covariances", "harmonics", "opacities")
@@ -96,7 +97,7 @@ def test_paper_configuration_has_the_papers_parameter_count():
 def train_steps(model, args, steps: int, seed: int = 0, lr: float = 1e-3):
     """A few Adam steps on one scene: renders of the targets against fixed random images."""
     gen = torch.Generator().manual_seed(seed)
-    n = args[5].shape[1]
+    n = args.target_intrinsics.shape[1]
     gt = torch.rand(1, n, 3, 64, 64, generator=gen)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     model.train()

@@ -51,6 +51,7 @@ class VGG16Features(nn.Module):
         self.features = nn.Sequential(*layers)
 
     def taps(self, x: Tensor) -> list[Tensor]:
+        """The activations after the ReLUs that LPIPS compares (``TAPS``), shallow to deep."""
         out = []
         for i, layer in enumerate(self.features[:TAPS[-1] + 1]):
             x = layer(x)
@@ -109,6 +110,7 @@ class LPIPS(nn.Module):
 
     def forward(self, pred: Float[Tensor, "batch 3 h w"], gt: Float[Tensor, "batch 3 h w"]
                 ) -> Float[Tensor, " batch"]:
+        """The LPIPS distance of each image pair (inputs in [0, 1]; lower is closer)."""
         x = ((2 * pred - 1) - self.shift) / self.scale
         y = ((2 * gt - 1) - self.shift) / self.scale
         total = 0

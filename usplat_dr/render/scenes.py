@@ -1,8 +1,9 @@
 """Procedural Gaussian scenes (torch) for tests, benchmarks and the render demo.
 
-``pixel_aligned_scene`` is the realistic-overlap scene of the rasteriser notes: one Gaussian per
-pixel of two nearby context views, unprojected at random depths (what a feed-forward model such
-as MVSplat predicts), rendered from a third camera between them.
+``pixel_aligned_scene`` is the realistic-overlap scene (docs/rasteriser_notes.md, "Tiles,
+records and the benchmark scene"): one Gaussian per pixel of two nearby context views,
+unprojected at random depths (what a feed-forward model such as MVSplat predicts), rendered from
+a third camera between them.
 """
 
 import math

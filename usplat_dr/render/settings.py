@@ -13,7 +13,8 @@ class RasterSettings:
 
     Parameter ``tile_size`` (``int`` or ``None``): edge of the tiles whose pixels share one
     depth-sorted list: 4, 8 or 16. ``None`` picks 4 on the LLVM backend (a 4x4 tile is one
-    16-lane SIMD packet: 4.4x fewer evaluated pairs than 16x16, notes sec. 2b) and 16 on CUDA.
+    16-lane SIMD packet: 4.4x fewer evaluated pairs than 16x16, docs/rasteriser_notes.md
+    "Tiles, records and the benchmark scene") and 16 on CUDA.
     Membership always follows the reference's 16x16 rule, so every tile size renders the same
     image; smaller tiles only skip work the reference's own ``alpha < 1/255`` rule would skip.
 
