@@ -128,17 +128,24 @@ def read_file(path: str | os.PathLike | Traversable, _seen: tuple = (),
     if key in _seen:
         raise ConfigError(f"config {key} includes itself (through {list(_seen)})")
     try:
-        data = parse(source.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise ConfigError(f"config file {key} is not valid YAML: {e}") from e
+        data = parse(source.read_text(encoding="utf-8")) or {}
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as e:
+        raise ConfigError(f"config file {key} is not valid YAML: {e}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {key} must hold a mapping, got {type(data).__name__}")
     includes = data.pop("include", []) or []
     if isinstance(includes, str):
         includes = [includes]
+    if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
+        raise ConfigError(f"config file {key}: 'include' must be a file name or a list of "
+                          f"them, got {includes!r}")
     out = {}
     for inc in includes:
-        out = merge(out, read_file(find_config(inc, source.parent), _seen + (key,), origins))
+        try:
+            found = find_config(inc, source.parent)
+        except ConfigError as e:
+            raise ConfigError(f"config file {key} includes {inc!r}: {e}") from None
+        out = merge(out, read_file(found, _seen + (key,), origins))
     if origins is not None:
         _record(origins, data, key)
     return merge(out, data)
@@ -180,7 +187,7 @@ def load_config(paths, overrides=()) -> Config:
 
 # ---- typed configs ---------------------------------------------------------------------
 
-def _where(origins: dict[str, str], key: str) -> str:
+def where_set(origins: dict[str, str], key: str) -> str:
     """Where ``key`` (dotted) was set, for messages: its file or override, else the key's
     nearest section that has an origin."""
     parts = key.split(".")
@@ -190,10 +197,17 @@ def _where(origins: dict[str, str], key: str) -> str:
     return "the configuration"
 
 
-def _typed_value(tp, value, key: str, origins: dict[str, str]):
+def typed_value(tp, value, key: str, origins: dict[str, str] | None = None):
     """``value`` checked against the annotation ``tp`` (int, float, bool, str, None, dict,
-    a dataclass, or a union of them): ints are accepted for floats; anything else is a
-    ``ConfigError`` naming the key, the expected type and the value's origin."""
+    a tuple of them, a dataclass, or a union of them): ints are accepted for floats, YAML
+    lists for tuples; anything else is a ``ConfigError`` naming the key, the expected type
+    and the value's origin.
+
+    Examples:
+        >>> typed_value(tuple[int, int], [32, 48], "dataset.image_shape")
+        (32, 48)
+    """
+    origins = origins or {}
     if dataclasses.is_dataclass(tp):
         return load_typed(tp, value, key, origins)
     options = typing.get_args(tp) if isinstance(tp, types.UnionType) else (tp,)
@@ -212,10 +226,18 @@ def _typed_value(tp, value, key: str, origins: dict[str, str]):
             return {}
         if typing.get_origin(option) is dict and isinstance(value, dict):
             return value
-    expected = " or ".join("null" if o is type(None) else getattr(o, "__name__", str(o))
-                           for o in options)
+        if typing.get_origin(option) is tuple and isinstance(value, (list, tuple)):
+            args = typing.get_args(option)
+            items = args[:1] * len(value) if args[-1:] == (Ellipsis,) else args
+            try:
+                if len(items) == len(value):
+                    return tuple(typed_value(t, v, key, origins) for t, v in zip(items, value))
+            except ConfigError:
+                pass  # reported below, as the whole value
+    expected = " or ".join("null" if o is type(None) else o.__name__ if isinstance(o, type)
+                           else str(o) for o in options)
     raise ConfigError(f"{key}={value!r}: expected {expected}, got {type(value).__name__} "
-                      f"(set in {_where(origins, key)})")
+                      f"(set in {where_set(origins, key)})")
 
 
 def load_typed(cls, data, section: str = "", origins: dict[str, str] | None = None):
@@ -241,18 +263,28 @@ def load_typed(cls, data, section: str = "", origins: dict[str, str] | None = No
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{section or 'the configuration'} must be a mapping of keys to "
-                          f"values, got {data!r} (set in {_where(origins, section)})")
+                          f"values, got {data!r} (set in {where_set(origins, section)})")
     hints = typing.get_type_hints(cls)
     known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - known)
+    unknown = sorted(set(data) - known, key=str)  # YAML keys may be ints too
     if unknown:
         key = prefix + str(unknown[0])
-        raise ConfigError(f"unknown key {key!r} (set in {_where(origins, key)}); "
+        raise ConfigError(f"unknown key {key!r} (set in {where_set(origins, key)}); "
                           f"{section or 'the top level'} knows {sorted(known)}")
-    return cls(**{k: _typed_value(hints[k], v, prefix + k, origins) for k, v in data.items()})
+    missing = [f.name for f in dataclasses.fields(cls) if f.name not in data
+               and f.default is dataclasses.MISSING
+               and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ConfigError(f"{section or 'the configuration'} needs {missing} (set in "
+                          f"{where_set(origins, section)})")
+    return cls(**{k: typed_value(hints[k], v, prefix + k, origins) for k, v in data.items()})
 
 
-def check_keys(section: dict, known: set[str], where: str) -> None:
-    unknown = sorted(set(section) - known)
+def check_keys(section: dict, known: set[str], where: str,
+               origins: dict[str, str] | None = None) -> None:
+    """A ``ConfigError`` naming the unknown keys of the mapping ``section`` (at dotted
+    ``where``) and, given ``origins``, the file or override that set the first."""
+    unknown = sorted(set(section) - known, key=str)
     if unknown:
-        raise ConfigError(f"unknown key(s) {unknown} in {where}; known: {sorted(known)}")
+        at = f" (set in {where_set(origins, f'{where}.{unknown[0]}')})" if origins else ""
+        raise ConfigError(f"unknown key(s) {unknown} in {where}{at}; known: {sorted(known)}")

@@ -56,7 +56,8 @@ def write_plain_dataset(root: Path, stage: str, chunks: list[list[dict]],
     auto = {}
     for i, scenes in enumerate(chunks):
         torch.save(scenes, stage_dir / f"{i:06d}.torch")
-        auto.update({s["key"]: f"{i:06d}.torch" for s in scenes})
+        auto.update({s["key"]: f"{i:06d}.torch" for s in scenes
+                     if isinstance(s, dict) and isinstance(s.get("key"), str)})
     (stage_dir / "index.json").write_text(json.dumps(auto if index is None else index))
     return stage_dir
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from jaxtyping import Float, UInt8
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 from torch import Tensor
 
 from usplat_dr.io import torch_save, write_json
@@ -124,17 +124,34 @@ def encode_image(image: UInt8[np.ndarray, "h w 3"], fmt: str = "png",
     return torch.frombuffer(bytearray(buf.getvalue()), dtype=torch.uint8)
 
 
-def decode_image(data: Tensor) -> UInt8[Tensor, "3 h w"]:
+#: Larger images are refused before decoding (a corrupt header can claim any size; 64 Mpx is
+#: far beyond the field's data: RE10K 360x640, DTU 512x640).
+MAX_IMAGE_PIXELS = 8192 * 8192
+
+
+def decode_image(data: object) -> UInt8[Tensor, "3 h w"]:
     """Decode one encoded image (uint8 1-D tensor) to uint8 [3, H, W] RGB.
 
-    Raises ``BadSceneError`` when the bytes are not a readable image."""
+    Raises ``BadSceneError`` when the bytes are not a readable image (or claim more than
+    ``MAX_IMAGE_PIXELS`` pixels)."""
     if not isinstance(data, Tensor) or data.dtype != torch.uint8 or data.ndim != 1:
         raise BadSceneError("an image is not a uint8 1-D tensor of encoded bytes")
+    # Pillow's format plugins raise many kinds of errors on damaged bytes (OSError,
+    # SyntaxError, struct.error, DecompressionBombError, ...): each means "not decodable"
     try:
-        with Image.open(io.BytesIO(data.numpy().tobytes())) as im:
+        im = Image.open(io.BytesIO(data.numpy().tobytes()))
+    except Exception as e:
+        raise BadSceneError(f"an image cannot be decoded ({type(e).__name__}: {e})") from e
+    with im:
+        w, h = im.size
+        if w * h > MAX_IMAGE_PIXELS:
+            raise BadSceneError(f"an image claims {w}x{h} pixels (more than "
+                                f"{MAX_IMAGE_PIXELS:,}): a corrupt header")
+        try:
             arr = np.asarray(im.convert("RGB"))
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
-        raise BadSceneError(f"an image cannot be decoded ({e})") from e
+        except Exception as e:
+            raise BadSceneError(f"an image cannot be decoded ({type(e).__name__}: {e})"
+                                ) from e
     return torch.from_numpy(arr.copy()).permute(2, 0, 1)
 
 
@@ -160,17 +177,25 @@ def check_scene(scene: object) -> None:
     if scene["timestamps"].shape != (v,):
         raise BadSceneError(f"timestamps have shape {tuple(scene['timestamps'].shape)}, "
                             f"expected ({v},)")
-    if "depths" in scene and scene["depths"].shape[0] != v:
-        raise BadSceneError(f"depths have {scene['depths'].shape[0]} frames, expected {v}")
+    if "depths" in scene:
+        d = scene["depths"]
+        if not isinstance(d, Tensor) or d.ndim != 3 or not d.is_floating_point():
+            raise BadSceneError("depths must be a float tensor [V, H, W]")
+        if d.shape[0] != v:
+            raise BadSceneError(f"depths have {d.shape[0]} frames, expected {v}")
 
 
-def read_chunk(path: str | os.PathLike) -> list[dict]:
-    """Load one chunk (a list of scene dicts). Raises ``BadChunkError`` when it is unreadable."""
+def read_chunk(path: str | os.PathLike) -> list:
+    """Load one chunk (a list of scene records, each checked later by ``check_scene``). Raises
+    ``BadChunkError`` when it is unreadable."""
     path = Path(path)
     try:
         chunk = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:  # truncated zip, pickle errors, I/O errors: all mean "unreadable"
-        raise BadChunkError(f"{path}: cannot be loaded ({type(e).__name__}: {e})") from e
+        first = next((line.strip() for line in str(e).splitlines()
+                      if line.strip() and "Weights only load failed" not in line), "")
+        raise BadChunkError(f"{path}: cannot be loaded ({type(e).__name__}: "
+                            f"{first[:200]})") from e
     if not isinstance(chunk, list):
         raise BadChunkError(f"{path}: holds a {type(chunk).__name__}, not a list of scenes")
     return chunk
@@ -198,6 +223,10 @@ def read_index(stage_dir: str | os.PathLike) -> dict[str, str]:
                          ) from None
     if not isinstance(index, dict) or not all(isinstance(v, str) for v in index.values()):
         raise ValueError(f"{path} must hold a JSON object (scene key -> chunk file name)")
+    # chunks live in the stage folder: a path ("../x.torch", "/abs", "") would read elsewhere
+    bad = next((v for v in index.values() if v in ("", ".", "..") or Path(v).name != v), None)
+    if bad is not None:
+        raise ValueError(f"{path}: {bad!r} is not the name of a chunk file in {path.parent}")
     return index
 
 

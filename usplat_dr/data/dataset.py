@@ -16,7 +16,8 @@ counted twice).
 
 Bad data never stops a run and is never silently lost: an unreadable chunk, a malformed
 record, a corrupt image, a scene missing from ``index.json``, a camera with NaN or a singular
-rotation are each skipped with one warning naming the file and scene, and counted in the
+rotation, an evaluation-index entry naming frames the scene does not have are each skipped
+with one warning naming the file and scene (tests/test_fuzz.py), and counted in the
 summary logged at the end of every pass (``ChunkDataset.last_summary`` in the main process).
 Expected skips (too few frames for the sampler, no evaluation-index entry, FOV over
 ``max_fov``, unexpected image shape) are counted without a warning. A skipped scene shortens
@@ -28,6 +29,9 @@ import collections
 import dataclasses
 import hashlib
 import logging
+import math
+import os
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,8 +39,9 @@ import torch
 import torch.distributed
 from torch.utils.data import IterableDataset, get_worker_info
 
-from usplat_dr.config import ConfigError, check_keys
+from usplat_dr.config import ConfigError, check_keys, load_typed, typed_value, where_set
 from usplat_dr.data.chunks import (
+    MAX_IMAGE_PIXELS,
     BadChunkError,
     BadSceneError,
     cameras_to_matrices,
@@ -48,6 +53,7 @@ from usplat_dr.data.chunks import (
 )
 from usplat_dr.data.shims import augment_flip, crop_views, fov_degrees, normalize_baseline
 from usplat_dr.data.view_sampler import (
+    FramesNotInSceneError,
     StepTracker,
     ViewSamplerAllCfg,
     ViewSamplerBoundedCfg,
@@ -116,7 +122,7 @@ class Summary(collections.Counter):
 
     WARN = ("unreadable chunk", "malformed scene", "bad camera", "corrupt image",
             "not in index.json", "missing chunk file", "bad depth", "not in its chunk",
-            "chunk not in index.json")
+            "chunk not in index.json", "frames not in scene")
 
     def line(self) -> str:
         skips = ", ".join(f"{n} {k}" for k, n in sorted(self.items()) if k != "examples")
@@ -269,7 +275,7 @@ class ChunkDataset(IterableDataset):
         log.info("%s %s epoch %d%s: %s", self.cfg.name, self.stage, self.epoch, worker,
                  summary.line())
 
-    def _runs(self, scene) -> list[str | None]:
+    def _runs(self, scene: object) -> list[str | None]:
         """The example keys a scene gives: ``[None]`` (its own key), or in the test stage with
         ``test_times_per_scene`` = T > 1, ``<key>_00`` .. ``<key>_(T-1)``."""
         times = self.cfg.test_times_per_scene if self.stage == "test" else 1
@@ -278,7 +284,7 @@ class ChunkDataset(IterableDataset):
             return [None]
         return [f"{key}_{t:02d}" for t in range(times)]
 
-    def _example(self, scene: dict, chunk_path: Path, gen: torch.Generator,
+    def _example(self, scene: object, chunk_path: Path, gen: torch.Generator,
                  summary: Summary, run: str | None = None) -> dict | None:
         """One example of ``scene``; ``run``: the key it goes by (``_runs``), default the
         scene's own."""
@@ -297,20 +303,28 @@ class ChunkDataset(IterableDataset):
         if key not in self.index:
             return skip("not in index.json")
         try:
-            extrinsics, intrinsics = cameras_to_matrices(scene["cameras"])
+            extrinsics, intrinsics = cameras_to_matrices(scene["cameras"].float())
         except BadSceneError as e:
             return skip("bad camera", str(e))
         num_views = extrinsics.shape[0]
         try:
             ctx, tgt = self.view_sampler.sample(run or key, num_views, gen)
-        except ViewSamplingError:
+        except FramesNotInSceneError as e:
+            return skip("frames not in scene", str(e))
+        except ViewSamplingError:  # too few frames for the bounded sampler, a null entry
             return skip("sampler: no views")
         if (fov_degrees(intrinsics) > self.cfg.max_fov).any():
             return skip("fov over max_fov")
         if self.cfg.near is None or self.cfg.far is None:
             if "near_far" not in scene:
                 return skip("malformed scene", "no near/far in the config or the scene")
-            near, far = (float(x) for x in scene["near_far"])
+            try:
+                near, far = (float(x) for x in scene["near_far"])
+            except (TypeError, ValueError, RuntimeError) as e:
+                return skip("malformed scene", f"near_far is not two numbers ({e})")
+            if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
+                return skip("malformed scene", f"near_far must be 0 < near < far, got "
+                                                f"{near}, {far}")
         else:
             near, far = self.cfg.near, self.cfg.far
 
@@ -322,10 +336,10 @@ class ChunkDataset(IterableDataset):
         except BadSceneError as e:
             return skip("corrupt image", f"frame {i}: {e}")
         shapes = {tuple(im.shape[1:]) for im in images.values()}
-        if self.cfg.skip_bad_shape and shapes != {tuple(self.cfg.original_image_shape)}:
-            return skip("unexpected image shape")
         if len(shapes) != 1:
             return skip("malformed scene", f"frames have different shapes {sorted(shapes)}")
+        if self.cfg.skip_bad_shape and shapes != {tuple(self.cfg.original_image_shape)}:
+            return skip("unexpected image shape")  # the field's: other shapes are skipped
 
         def views(indices: torch.Tensor) -> dict:
             v = {
@@ -357,30 +371,95 @@ class ChunkDataset(IterableDataset):
         return example
 
 
+#: The keys of a config's ``dataset`` section, and the view samplers it can name.
+SECTION_KEYS = {"name", "roots", "image_shape", "view_sampler", "overrides", "evaluation_index"}
+SAMPLERS = {"bounded": ViewSamplerBoundedCfg, "evaluation": ViewSamplerEvaluationCfg,
+            "all": ViewSamplerAllCfg}
+
+
+def check_dataset_section(dcfg: dict, stage: str = "train",
+                          origins: dict[str, str] | None = None
+                          ) -> tuple[ViewSamplerCfg, dict]:
+    """The view sampler and the ``DatasetCfg`` overrides that a config's ``dataset`` section
+    describes for ``stage``, every key and value checked without reading the disk: an unknown
+    key, a value of the wrong type or out of range is a ``ConfigError`` naming the key and,
+    given ``origins`` (``Config.origins``), the file or override that set it. ``roots`` is
+    checked by ``dataset_from_section``, which needs it.
+
+    Examples:
+        >>> sampler, over = check_dataset_section({"image_shape": [32, 48]})
+        >>> sampler.name, over
+        ('bounded', {'image_shape': (32, 48)})
+    """
+    origins = origins or {}
+
+    def where(key: str) -> str:
+        return where_set(origins, key)
+
+    if not isinstance(dcfg, dict):
+        raise ConfigError(f"dataset must be a mapping, got {dcfg!r} (set in {where('dataset')})")
+    check_keys(dcfg, SECTION_KEYS, "dataset", origins)
+    name = dcfg.get("name", "re10k")
+    if name not in PRESETS:
+        raise ConfigError(f"dataset.name={name!r} must be one of {sorted(PRESETS)} (set in "
+                          f"{where('dataset.name')})")
+    roots = dcfg.get("roots")
+    if roots is not None and not isinstance(roots, (str, os.PathLike)) and not (
+            isinstance(roots, list) and all(isinstance(r, (str, os.PathLike)) for r in roots)):
+        raise ConfigError(f"dataset.roots={roots!r} must be a folder or a list of folders (set "
+                          f"in {where('dataset.roots')})")
+    if stage != "train" and dcfg.get("evaluation_index"):
+        # a path from the command line or the evaluation protocol (str or Path)
+        sampler = ViewSamplerEvaluationCfg(str(dcfg["evaluation_index"]))
+    else:
+        vs = dcfg.get("view_sampler") or {"name": "bounded"}
+        if not isinstance(vs, dict):
+            raise ConfigError(f"dataset.view_sampler={vs!r} must be a mapping (set in "
+                              f"{where('dataset.view_sampler')})")
+        vs = dict(vs)
+        kind = vs.pop("name", "bounded")
+        if kind not in SAMPLERS:
+            raise ConfigError(f"dataset.view_sampler.name={kind!r} must be one of "
+                              f"{sorted(SAMPLERS)} (set in {where('dataset.view_sampler.name')})")
+        sampler = load_typed(SAMPLERS[kind], vs, "dataset.view_sampler", origins)
+    over = dcfg.get("overrides") or {}
+    if not isinstance(over, dict):
+        raise ConfigError(f"dataset.overrides={over!r} must be a mapping (set in "
+                          f"{where('dataset.overrides')})")
+    known = {f.name for f in dataclasses.fields(DatasetCfg)} - {"roots", "name", "view_sampler"}
+    check_keys(over, known, "dataset.overrides", origins)
+    hints = typing.get_type_hints(DatasetCfg)
+    typed = {f"dataset.overrides.{k}": typed_value(hints[k], v, f"dataset.overrides.{k}",
+                                                    origins) for k, v in over.items()}
+    if "image_shape" in dcfg:
+        typed["dataset.image_shape"] = typed_value(hints["image_shape"], dcfg["image_shape"],
+                                                   "dataset.image_shape", origins)
+    for key, shape in typed.items():
+        # views are decoded and cropped to these shapes: beyond MAX_IMAGE_PIXELS, a typo
+        if key.endswith("image_shape") and not (
+                min(shape) >= 1 and shape[0] * shape[1] <= MAX_IMAGE_PIXELS):
+            raise ConfigError(f"{key}={list(shape)} must be two sizes >= 1, at most "
+                              f"{MAX_IMAGE_PIXELS:,} pixels (set in {where(key)})")
+    over = {k.rpartition(".")[2]: v for k, v in typed.items()}
+    bounds = {"near": 1.0, "far": 100.0, **PRESETS[name], **over}  # DatasetCfg's defaults
+    near, far = bounds["near"], bounds["far"]
+    if near is not None and far is not None and not (
+            math.isfinite(near) and math.isfinite(far) and 0 < near < far):
+        raise ConfigError(f"dataset near={near}, far={far} must be 0 < near < far (set in "
+                          f"{where('dataset.overrides')})")
+    return sampler, over
+
+
 def dataset_from_section(dcfg: dict, stage: str, step_tracker=None, rank: int | None = None,
                          world_size: int | None = None):
     """The dataset a config's ``dataset`` section describes (``name``, ``roots``,
-    ``image_shape``, ``view_sampler``, ``overrides``, ``evaluation_index``) for ``stage``;
-    outside training, ``evaluation_index`` selects the evaluation sampler."""
-    check_keys(dcfg, {"name", "roots", "image_shape", "view_sampler", "overrides",
-                      "evaluation_index"}, "dataset")
+    ``image_shape``, ``view_sampler``, ``overrides``, ``evaluation_index``; checked by
+    ``check_dataset_section``) for ``stage``; outside training, ``evaluation_index`` selects
+    the evaluation sampler."""
+    sampler, over = check_dataset_section(dcfg, stage)
     if not dcfg.get("roots"):
         raise ConfigError("dataset.roots must name at least one dataset folder (e.g. "
                           "dataset.roots=[datasets/re10k]); make a synthetic one with "
                           "`usplat synth --out DIR`")
-    kinds = {"bounded": ViewSamplerBoundedCfg, "evaluation": ViewSamplerEvaluationCfg,
-             "all": ViewSamplerAllCfg}
-    vs = dict(dcfg.get("view_sampler") or {"name": "bounded"})
-    if stage != "train" and dcfg.get("evaluation_index"):
-        vs = {"name": "evaluation", "index_path": dcfg["evaluation_index"]}
-    name = vs.get("name", "bounded")
-    if name not in kinds:
-        raise ConfigError(f"dataset.view_sampler.name must be one of {sorted(kinds)}")
-    fields = {f.name for f in dataclasses.fields(kinds[name])}
-    check_keys(vs, fields, "dataset.view_sampler")
-    sampler = kinds[name](**vs)
-    over = dict(dcfg.get("overrides") or {})
-    if "image_shape" in dcfg:
-        over["image_shape"] = tuple(dcfg["image_shape"])
     cfg = dataset_cfg(dcfg.get("name", "re10k"), dcfg["roots"], view_sampler=sampler, **over)
     return ChunkDataset(cfg, stage, step_tracker, rank=rank, world_size=world_size)

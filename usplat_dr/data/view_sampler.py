@@ -23,6 +23,11 @@ class ViewSamplingError(ValueError):
     """The scene cannot give an example with this sampler (an expected, counted skip)."""
 
 
+class FramesNotInSceneError(ViewSamplingError):
+    """An evaluation index names frames the scene does not have: the index and the data
+    disagree (a skip with a warning, unlike a scene too short for the bounded sampler)."""
+
+
 class StepTracker:
     """The global training step, shared with DataLoader worker processes (shared memory), so
     the bounded sampler's gap schedule follows training in every worker."""
@@ -160,12 +165,11 @@ class ViewSamplerEvaluation:
         entry = self.index.get(scene)
         if entry is None:
             raise ViewSamplingError(f"scene {scene} has no entry in {self.cfg.index_path}")
-        context, target = torch.tensor(entry["context"]), torch.tensor(entry["target"])
-        if max(context.max(), target.max()) >= num_views:
-            raise ViewSamplingError(f"the index entry of {scene} names frame "
-                                    f"{int(max(context.max(), target.max()))}, but the scene "
-                                    f"has {num_views} frames")
-        return context, target
+        last = max(entry["context"] + entry["target"])  # a Python int: any size compares
+        if last >= num_views:
+            raise FramesNotInSceneError(f"the entry of {scene} in {self.cfg.index_path} names "
+                                        f"frame {last}, but the scene has {num_views} frames")
+        return torch.tensor(entry["context"]), torch.tensor(entry["target"])
 
 
 class ViewSamplerAll:
@@ -194,10 +198,12 @@ def read_evaluation_index(path: str | os.PathLike) -> dict[str, dict | None]:
     for key, entry in index.items():
         if entry is None:
             continue
-        ok = isinstance(entry, dict) and {"context", "target"} <= set(entry)
+        ok = (isinstance(entry, dict) and {"context", "target"} <= set(entry)
+              and all(isinstance(entry[k], list) and entry[k] for k in ("context", "target")))
         frames = entry["context"] + entry["target"] if ok else []
-        if (not ok or not entry["context"] or not entry["target"]
-                or not all(isinstance(i, int) and i >= 0 for i in frames)):
+        # bool is an int subclass in Python; JSON true/false is not a frame number
+        if not ok or not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0
+                             for i in frames):
             raise ValueError(f"evaluation index {path}: entry {key!r} must be null or "
                              '{"context": [ints >= 0], "target": [ints >= 0]}, '
                              f"got {entry!r}")

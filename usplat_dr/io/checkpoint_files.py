@@ -8,7 +8,6 @@ can execute arbitrary code. Full unpickling happens only when the caller opts in
 
 import os
 import pickle
-import zipfile
 from pathlib import Path
 
 import torch
@@ -45,6 +44,8 @@ def load_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_locat
                       "not a pickle")
         raise ValueError(f"{what} {str(path)!r} is not a file written by torch.save "
                          f"({reason[:200]})") from None
-    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as e:
+    # anything else torch.load raises on a damaged file (RuntimeError, EOFError, BadZipFile,
+    # OSError; KeyError or UnicodeDecodeError from a corrupt pickle) means "unreadable"
+    except Exception as e:
         raise ValueError(f"{what} {str(path)!r} is not a file written by torch.save, or it "
                          f"is truncated ({type(e).__name__}: {str(e)[:200]})") from None

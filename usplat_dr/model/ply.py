@@ -117,7 +117,7 @@ def _vertex_layout(path, header: list[str]) -> tuple[np.dtype, int, int]:
         if words[0] == "element" and len(words) == 3 and words[2].isdigit():
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property" and elements:
-            if words[1] == "list":
+            if words[1:2] == ["list"]:
                 raise ValueError(f"{path}: element {elements[-1][0]!r} has a list property "
                                  f"({line!r}); 3DGS files hold fixed-size records only")
             if len(words) != 3 or words[1] not in _PLY_TYPES:
@@ -127,6 +127,9 @@ def _vertex_layout(path, header: list[str]) -> tuple[np.dtype, int, int]:
             raise ValueError(f"{path}: malformed header line {line!r}")
     offset = 0
     for name, count, props in elements:
+        names = [n for n, _ in props]
+        if len(set(names)) != len(names):
+            raise ValueError(f"{path}: element {name!r} declares a property twice ({names})")
         dtype = np.dtype(props)
         if name == "vertex":
             return dtype, count, offset
@@ -141,7 +144,9 @@ def read_ply(path: str | os.PathLike) -> dict:
 
     The SH degree D is inferred from the number of ``f_rest_*`` properties (0, 9, 24 or 45
     for degree 0..3); properties other tools add (normals, colours, their own fields, of
-    any scalar type) are ignored; every property is read as float32."""
+    any scalar type) are ignored; every property is read as float32. Anything else (not a
+    binary 3DGS PLY, truncated, a Gaussian with NaN or infinite values) is a ``ValueError``
+    naming the file."""
     raw = Path(path).read_bytes()
     marker = raw.find(b"end_header\n")
     if not raw.startswith(b"ply") or marker < 0:
@@ -178,6 +183,17 @@ def read_ply(path: str | os.PathLike) -> dict:
     wxyz = col("rot_0", "rot_1", "rot_2", "rot_3")
     rot = quat_xyzw_to_matrix(torch.cat([wxyz[:, 1:], wxyz[:, :1]], 1))  # divides out |q|
     cov = rot @ torch.diag_embed(scales.square()) @ rot.transpose(1, 2)
-    return {"means": col("x", "y", "z"), "covariances": cov, "harmonics": harmonics,
-            "opacities": torch.sigmoid(col("opacity")[:, 0]), "scales": scales,
-            "rotations": wxyz, "sh_degree": degree}
+    out = {"means": col("x", "y", "z"), "covariances": cov, "harmonics": harmonics,
+           "opacities": torch.sigmoid(col("opacity")[:, 0]), "scales": scales,
+           "rotations": wxyz, "sh_degree": degree}
+    # NaN or infinite values (a damaged file, or a diverged fit) would reach the rasteriser
+    # unnoticed; so would a log scale over ~44 (its scale squared, in the covariance,
+    # overflows float32). A zero quaternion is the identity here (quat_xyzw_to_matrix's eps).
+    finite = [torch.isfinite(v).flatten(1).all(1) if v.ndim > 1 else torch.isfinite(v)
+              for k, v in out.items() if k != "sh_degree"]
+    bad = ~torch.stack(finite).all(0)
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} of {count} Gaussians have non-finite "
+                         f"values (NaN or infinite, or a log scale too large for float32), "
+                         f"the first at vertex {int(bad.nonzero()[0, 0])}")
+    return out

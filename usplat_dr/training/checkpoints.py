@@ -2,6 +2,8 @@
 trained (a) as the start of (b) and (c) (``init_from_checkpoint``), and a shippable copy of
 one (``export_weights``)."""
 
+import contextlib
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -9,8 +11,10 @@ from pathlib import Path
 import torch
 
 from usplat_dr.config import ConfigError
+from usplat_dr.data.chunks import MAX_IMAGE_PIXELS
 from usplat_dr.io import load_torch_file, torch_save
 from usplat_dr.model import UniqueSplat, UniqueSplatCfg
+from usplat_dr.model.checkpoint import check_state_dict
 
 #: How a user opts in to full unpickling (named in the refusal's message).
 TRUST_HINT = "--trust-checkpoint (usplat eval/render/export-ply/train) or trust=True"
@@ -26,27 +30,74 @@ def read_usplat_checkpoint(checkpoint: str | os.PathLike, map_location="cpu",
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist (usplat train writes "
                                 f"OUTPUT_DIR/checkpoints/last.ckpt; shipped ones are in "
                                 f"checkpoints/)")
-    return load_torch_file(path, "checkpoint", map_location, trust=trust, trust_hint=TRUST_HINT)
+    state = load_torch_file(path, "checkpoint", map_location, trust=trust,
+                            trust_hint=TRUST_HINT)
+    if not isinstance(state, dict):
+        raise ValueError(f"checkpoint {str(path)!r} holds a {type(state).__name__}, not a "
+                         f"usplat checkpoint (a dict with 'model' and 'model_config')")
+    return state
+
+
+@contextlib.contextmanager
+def _quiet_resnet():
+    """No "ResNet18 weights not found" warning: the weights come from the checkpoint."""
+    resnet_log = logging.getLogger("usplat_dr.model.hypernet.resnet")
+    level = resnet_log.level
+    resnet_log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        resnet_log.setLevel(level)
+
+
+def _model_state(path: Path, state: dict) -> tuple[UniqueSplatCfg, dict[str, torch.Tensor]]:
+    """The model config and weights of a loaded usplat checkpoint, checked against each other
+    without building the network: a ``ValueError`` naming ``path`` unless ``model_config``
+    describes a UniqueSplat whose parameters and buffers have exactly the shapes of
+    ``model``'s tensors, floating where the network's are, and finite."""
+    if not isinstance(state.get("model_config"), dict):
+        raise ValueError(f"{path} is not a usplat training checkpoint (no 'model_config'); "
+                         f"an MVSplat checkpoint loads with UniqueSplat.load_mvsplat")
+    sd = state.get("model")
+    if not isinstance(sd, dict) or not all(
+            isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in sd.items()):
+        raise ValueError(f"{path}: 'model' is not a state dict (names -> tensors)")
+    try:
+        cfg = UniqueSplatCfg.from_dict(state["model_config"])
+        # Built on the meta device (shapes, no memory) first: a corrupt model_config can ask
+        # for any size (d_feature=10**6 makes 8e13 weights), so the real network is built
+        # only once its shapes are those of the checkpoint's tensors, already in memory.
+        # resnet_weights is a file of the training machine; the checkpoint holds its weights.
+        with torch.device("meta"), _quiet_resnet():
+            expected = UniqueSplat(dataclasses.replace(cfg, resnet_weights=None)).state_dict()
+    except (TypeError, ValueError, KeyError, RuntimeError) as e:  # RuntimeError: sizes overflow
+        raise ValueError(f"{path}: its model_config does not describe a UniqueSplat "
+                         f"({type(e).__name__}: {str(e)[:300]})") from None
+    check_state_dict(expected, sd, what=f"checkpoint {path}")
+    for name, value in sd.items():
+        if value.is_complex() or value.is_floating_point() != expected[name].is_floating_point():
+            raise ValueError(f"{path}: {name} is {value.dtype}, the network's is "
+                             f"{expected[name].dtype}")
+        if value.is_floating_point() and not torch.isfinite(value).all():
+            raise ValueError(f"{path}: {name} holds {int((~torch.isfinite(value)).sum())} "
+                             f"non-finite values (a corrupt file, or saved from a diverged run)")
+    return cfg, sd
 
 
 def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu",
                trust: bool = False):
     """A ``UniqueSplat`` from a training checkpoint (``usplat train``'s ``last.ckpt``) or a
-    shipped one, and its step. ``trust``: see ``read_usplat_checkpoint``."""
+    shipped one, and its step. ``trust``: see ``read_usplat_checkpoint``. A file that is not
+    such a checkpoint, or whose weights do not fit its ``model_config``, is a ``ValueError``
+    naming it."""
     path = Path(checkpoint)
     state = read_usplat_checkpoint(path, device, trust)
-    if "model_config" not in state:
-        raise ValueError(f"{path} is not a usplat training checkpoint (no 'model_config'); "
-                         f"an MVSplat checkpoint loads with UniqueSplat.load_mvsplat")
-    resnet_log = logging.getLogger("usplat_dr.model.hypernet.resnet")
-    level = resnet_log.level
-    resnet_log.setLevel(logging.ERROR)  # its weights come from the checkpoint, not a file
-    try:
-        model = UniqueSplat(UniqueSplatCfg.from_dict(state["model_config"]))
-    finally:
-        resnet_log.setLevel(level)
-    model.load_state_dict(state["model"])
-    return model.to(device).eval(), state.get("step", 0)
+    cfg, sd = _model_state(path, state)
+    with _quiet_resnet():
+        model = UniqueSplat(cfg)
+    model.load_state_dict(sd)
+    step = state.get("step", 0)
+    return model.to(device).eval(), step if isinstance(step, int) else 0
 
 
 def training_image_shape(checkpoint: str | os.PathLike, trust: bool = False
@@ -54,8 +105,21 @@ def training_image_shape(checkpoint: str | os.PathLike, trust: bool = False
     """The (H, W) a usplat checkpoint was trained at (its config's ``dataset.image_shape``),
     or ``None`` when the checkpoint does not record one."""
     state = read_usplat_checkpoint(checkpoint, trust=trust)
-    shape = state.get("config", {}).get("dataset", {}).get("image_shape")
-    return (int(shape[0]), int(shape[1])) if shape else None
+    config = state.get("config") or {}
+    dataset = (config.get("dataset") or {}) if isinstance(config, dict) else None
+    if not isinstance(dataset, dict):
+        raise ValueError(f"checkpoint {str(checkpoint)!r}: its 'config' is not a training "
+                         f"config (a mapping with a 'dataset' mapping); pass --image-shape H W")
+    shape = dataset.get("image_shape")
+    if not shape:
+        return None
+    if (not isinstance(shape, (list, tuple)) or len(shape) != 2
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in shape)
+            or shape[0] * shape[1] > MAX_IMAGE_PIXELS):
+        raise ValueError(f"checkpoint {str(checkpoint)!r}: its config's dataset.image_shape "
+                         f"must be [H, W] (at most {MAX_IMAGE_PIXELS:,} pixels), got "
+                         f"{shape!r}; pass --image-shape H W")
+    return int(shape[0]), int(shape[1])
 
 
 def load_models(runs: dict, device) -> dict:
@@ -77,11 +141,13 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
     if "model_config" not in state:
         raise ConfigError(f"model.init_from: {path} is not a usplat checkpoint (no "
                           f"'model_config'); an MVSplat checkpoint goes in model.init_mvsplat")
-    sd = state["model"]
-    if state["model_config"]["variant"] != "baseline":
-        raise ConfigError(f"model.init_from: {path} holds variant "
-                          f"{state['model_config']['variant']!r}; start from a baseline (a) "
-                          f"checkpoint (its primary network is complete)")
+    try:
+        cfg, sd = _model_state(path, state)
+    except ValueError as e:
+        raise ConfigError(f"model.init_from: {e}") from None
+    if cfg.variant != "baseline":
+        raise ConfigError(f"model.init_from: {path} holds variant {cfg.variant!r}; start "
+                          f"from a baseline (a) checkpoint (its primary network is complete)")
     primary = {k.removeprefix("primary."): v.float() for k, v in sd.items()
                if k.startswith("primary.")}
     model.load_mvsplat(primary)

@@ -3,16 +3,19 @@ defaults are the field's recipe (MVSplat / pixelSplat: Adam, peak lr 2e-4 on a o
 schedule, gradient clipping at 0.5, MSE + 0.05 LPIPS after step 150,000, 300,000 steps). These
 defaults are the only ones: ``usplat_dr/configs/base.yaml`` documents them and sets nothing.
 
-``RootCfg.load(cfg)`` checks a loaded config (``usplat_dr.config.load_config``): an unknown key
-or a value of the wrong type is a ``ConfigError`` naming the key and the file or command-line
-override that set it. The ``dataset`` section stays a mapping, checked by
-``usplat_dr.data.dataset.dataset_from_section`` (its keys depend on the view sampler).
+``RootCfg.load(cfg)`` checks a loaded config (``usplat_dr.config.load_config``): an unknown key,
+a value of the wrong type or out of range (``RANGES``) is a ``ConfigError`` naming the key and
+the file or command-line override that set it. The ``dataset`` section stays a mapping (its
+keys depend on the view sampler), checked the same way by
+``usplat_dr.data.dataset.check_dataset_section``.
 """
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
-from usplat_dr.config import ConfigError, load_typed
+from usplat_dr.config import ConfigError, load_typed, where_set
+from usplat_dr.data.dataset import check_dataset_section
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.uniquesplat import PRESETS, UniqueSplatCfg
 from usplat_dr.training.checkpoints import init_from_checkpoint
@@ -75,6 +78,30 @@ class ModelSection:
     trust_checkpoint: bool = False
 
 
+def _positive_finite(x: float) -> bool:
+    return math.isfinite(x) and x > 0
+
+
+#: The ranges ``RootCfg.load`` checks: dotted key -> (test, what the message says).
+RANGES = {
+    "train.steps": (lambda v: v >= 1, "must be >= 1"),
+    "train.checkpoint_every": (lambda v: v >= 1, "must be >= 1"),
+    "train.validate_every": (lambda v: v >= 1, "must be >= 1"),
+    "train.log_every": (lambda v: v >= 1, "must be >= 1"),
+    "train.max_nonfinite": (lambda v: v >= 1, "must be >= 1"),
+    "optimizer.lr": (_positive_finite, "must be finite and > 0"),
+    "optimizer.warm_up_fraction": (lambda v: 0 <= v < 1, "must be in [0, 1)"),
+    "optimizer.gradient_clip": (lambda v: v > 0, "must be > 0 (.inf: no clipping)"),
+    "optimizer.hyper_lr_scale": (_positive_finite, "must be finite and > 0"),
+    "loss.mse": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
+    "loss.lpips": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
+    "loss.depth": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
+    "threads": (lambda v: v is None or v >= 1, "must be >= 1 (or null: cores / ranks)"),
+    "data_loader.batch_size": (lambda v: v >= 1, "must be >= 1"),
+    "data_loader.num_workers": (lambda v: v >= 0, "must be >= 0"),
+}
+
+
 @dataclass(frozen=True)
 class RootCfg:
     """A whole training configuration (the YAML file's top level)."""
@@ -85,7 +112,7 @@ class RootCfg:
     threads: int | None = None  # torch and Dr.Jit threads per process (None: cores / ranks)
     name: str | None = None  # a label for the run
     model: ModelSection = field(default_factory=ModelSection)
-    dataset: dict = field(default_factory=dict)  # checked by dataset_from_section
+    dataset: dict = field(default_factory=dict)  # checked by check_dataset_section
     data_loader: DataLoaderCfg = field(default_factory=DataLoaderCfg)
     optimizer: OptimizerCfg = field(default_factory=OptimizerCfg)
     loss: LossCfg = field(default_factory=LossCfg)
@@ -93,8 +120,19 @@ class RootCfg:
 
     @classmethod
     def load(cls, cfg: dict) -> "RootCfg":
-        """The typed configuration of a loaded config (its ``origins`` name the files)."""
-        return load_typed(cls, cfg)
+        """The typed configuration of a loaded config (its ``origins`` name the files), its
+        values checked for range (a ``ConfigError`` names the key and where it was set)."""
+        root = load_typed(cls, cfg)
+        origins = getattr(cfg, "origins", {}) or {}
+        for key, (ok, requirement) in RANGES.items():
+            value = root
+            for part in key.split("."):
+                value = getattr(value, part)
+            if not ok(value):
+                raise ConfigError(f"{key}={value!r} is out of range (set in "
+                                  f"{where_set(origins, key)}): {requirement}")
+        check_dataset_section(root.dataset, "train", origins)
+        return root
 
 
 def model_from_config(section: ModelSection | dict) -> UniqueSplat:
