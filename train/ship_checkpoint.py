@@ -68,6 +68,10 @@ def main(argv=None) -> int:
     file = args.root / f"{args.name}.pt"
     state = read_usplat_checkpoint(args.checkpoint, trust=trust)
     metadata = {"recipe": state["config"].get("loss", {}), "eval_data": args.eval_data}
+    # Read before exporting: the init may be the very file this export replaces (a new stage
+    # of tiny_baseline.pt trained from the previous one).
+    init = state["config"]["model"].get("init_from")
+    init_steps = read_usplat_checkpoint(init, trust=trust)["step"] if init else 0
     export_weights(args.checkpoint, file, half=True, metadata=metadata, trust=trust)
     shipped = held_out(file, args.eval_data, args.size, args.splits)
     diff = abs(shipped["standard"]["psnr"] - reference["standard"]["psnr"])
@@ -76,8 +80,6 @@ def main(argv=None) -> int:
         export_weights(args.checkpoint, file, half=False, metadata=metadata, trust=trust)
         shipped = held_out(file, args.eval_data, args.size, args.splits)
     cfg = state["model_config"]
-    init = state["config"]["model"].get("init_from")
-    init_steps = read_usplat_checkpoint(init, trust=trust)["step"] if init else 0
     entry = {"name": args.name, "preset": state["config"]["model"].get("preset", "tiny"),
              "variant": cfg["variant"], "file": file.name, "sha256": sha256(file),
              "train_command": args.train_command, "data": args.data,
