@@ -6,6 +6,9 @@ import hashlib
 import json
 import logging
 import math
+import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -38,9 +41,35 @@ def test_manifest_lists_the_required_models_within_budget():
         if e["variant"] != "baseline" or e["name"].endswith("_continued"):
             # (b), (c) and the control: fine-tuned by the paper's protocol from the shipped (a)
             assert Path(e["init_from"]).name == by["tiny_baseline"]["file"], e["name"]
+        elif e.get("init_from_commit"):
+            # a staged (a) started from an earlier version of a file: named by commit and hash
+            assert re.fullmatch(r"[0-9a-f]{7,40}", e["init_from_commit"]), e["name"]
+            assert re.fullmatch(r"[0-9a-f]{64}", e["init_from_sha256"]), e["name"]
         elif e.get("init_from"):
             # a staged (a): its ancestry starts at a shipped checkpoint
             assert Path(e["init_from"]).name in files, e["name"]
+
+
+def in_history(commit: str) -> bool:
+    """Whether this checkout's git history holds ``commit`` (not in a wheel install or a
+    shallow clone)."""
+    if shutil.which("git") is None or not (ROOT.parent / ".git").exists():
+        return False
+    check = ["git", "-C", str(ROOT.parent), "cat-file", "-e", f"{commit}^{{commit}}"]
+    return subprocess.run(check, capture_output=True).returncode == 0
+
+
+@pytest.mark.parametrize("entry", [e for e in MANIFEST if e.get("init_from_commit")],
+                         ids=lambda e: e["name"])
+def test_an_init_from_git_history_matches_its_sha256(entry):
+    # the earlier file a stage started from is still in the history, byte for byte
+    if not in_history(entry["init_from_commit"]):
+        pytest.skip(f"commit {entry['init_from_commit']} is not in this checkout's history "
+                    f"(a wheel install or a shallow clone)")
+    data = subprocess.run(["git", "-C", str(ROOT.parent), "show",
+                           f"{entry['init_from_commit']}:{entry['init_from']}"],
+                          capture_output=True, check=True).stdout
+    assert hashlib.sha256(data).hexdigest() == entry["init_from_sha256"]
 
 
 @pytest.mark.parametrize("entry", MANIFEST, ids=[e["name"] for e in MANIFEST])
