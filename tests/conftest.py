@@ -1,5 +1,7 @@
 """Shared fixtures: the ``backend`` fixture runs LLVM always and CUDA where a GPU is present."""
 
+import os
+
 import pytest
 import torch
 
@@ -45,3 +47,15 @@ def _flush_denormals():
     # CPU arithmetic ~2x slower without changing any result we compare.
     torch.set_flush_denormal(True)
     yield
+
+
+@pytest.fixture(autouse=True)
+def _restore_environment():
+    # In-process `usplat` calls (cli.main) turn portable numerics on by writing os.environ;
+    # without this, later tests' subprocesses (torchrun workers) would inherit them while this
+    # process's torch was imported without them.
+    saved = dict(os.environ)
+    yield
+    if os.environ != saved:
+        os.environ.clear()
+        os.environ.update(saved)

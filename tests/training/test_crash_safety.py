@@ -7,6 +7,7 @@ uninterrupted run (one thread: a fixed order of float sums).
 Each start imports torch and Dr.Jit and builds the model (a few seconds on one core), so the
 steps are tiny: 32x32 images, 2 targets, a checkpoint after every step."""
 
+import csv
 import os
 import random
 import signal
@@ -22,7 +23,10 @@ from usplat_dr.data.synth import synthesize
 
 REPO = Path(__file__).parents[2]
 CONFIG = REPO / "usplat_dr" / "configs" / "synthetic_tiny.yaml"
-STEPS = 40
+#: Steps of the run. Each of the 20 kills lets the run advance by one step (the checkpoint it
+#: waits for) plus a random delay of at most two step times, so the kills use at most 60 steps
+#: and about 40 on average: SIGTERM and SIGINT always meet a run that is still training.
+STEPS = 80
 KILLS = 20
 
 pytestmark = pytest.mark.slow
@@ -83,6 +87,7 @@ def test_killed_and_signalled_runs_resume_to_the_uninterrupted_result(data, tmp_
     subprocess.run(command(data, straight), env=environment(), check=True, timeout=600,
                    capture_output=True)
     assert checkpoint_step(straight) == STEPS
+    step_s = seconds_per_step(straight)
 
     out = tmp_path / "killed"
     ckpt_dir = out / "checkpoints"
@@ -100,7 +105,8 @@ def test_killed_and_signalled_runs_resume_to_the_uninterrupted_result(data, tmp_
                 break
             # wait until this process has written a checkpoint of its own (it has resumed
             # and trained), then strike: every 4th kill as soon as a checkpoint's temporary
-            # file appears (mid-write), the others after a random delay within a step or two
+            # file appears (mid-write), the others after a random delay within two steps
+            # (measured on the uninterrupted run, so a faster CPU does not finish the run)
             before = stamp(ckpt_dir / "last.ckpt")
             if not wait_for(lambda: stamp(ckpt_dir / "last.ckpt") != before, proc):
                 pytest.fail(f"run {n} ended before it was signalled: "
@@ -109,7 +115,7 @@ def test_killed_and_signalled_runs_resume_to_the_uninterrupted_result(data, tmp_
                 if wait_for(lambda: any(ckpt_dir.glob(".last.ckpt.*.tmp")), proc):
                     during_write += 1
             else:
-                time.sleep(rng.uniform(0.0, 0.6))
+                time.sleep(rng.uniform(0.0, 2 * step_s))
             proc.send_signal(sig)
             _, err = proc.communicate(timeout=120)
         finally:
@@ -129,6 +135,15 @@ def test_killed_and_signalled_runs_resume_to_the_uninterrupted_result(data, tmp_
     assert checkpoint_step(out) == STEPS
     a, b = weights(straight), weights(out)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def seconds_per_step(out: Path) -> float:
+    """The uninterrupted run's time per step after its first (metrics.csv, ``time_s``)."""
+    with open(out / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    first, last = rows[0], rows[-1]
+    return (float(last["time_s"]) - float(first["time_s"])) / (int(last["step"])
+                                                              - int(first["step"]))
 
 
 def stamp(path: Path):
