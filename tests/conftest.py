@@ -52,8 +52,7 @@ def _flush_denormals():
 @pytest.fixture(autouse=True)
 def _restore_environment():
     # In-process `usplat` calls (cli.main) turn portable numerics on by writing os.environ;
-    # without this, later tests' subprocesses (torchrun workers) would inherit them while this
-    # process's torch was imported without them.
+    # later tests' subprocesses (torchrun workers) would otherwise inherit them.
     saved = dict(os.environ)
     yield
     if os.environ != saved:
