@@ -441,7 +441,9 @@ def check_dataset_section(dcfg: dict, stage: str = "train",
             raise ConfigError(f"{key}={list(shape)} must be two sizes >= 1, at most "
                               f"{MAX_IMAGE_PIXELS:,} pixels (set in {where(key)})")
     over = {k.rpartition(".")[2]: v for k, v in typed.items()}
-    bounds = {"near": 1.0, "far": 100.0, **PRESETS[name], **over}  # DatasetCfg's defaults
+    defaults = {f.name: f.default for f in dataclasses.fields(DatasetCfg)
+                if f.name in ("near", "far")}
+    bounds = {**defaults, **PRESETS[name], **over}
     near, far = bounds["near"], bounds["far"]
     if near is not None and far is not None and not (
             math.isfinite(near) and math.isfinite(far) and 0 < near < far):
