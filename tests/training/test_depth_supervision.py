@@ -17,7 +17,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.model import UniqueSplat
 from usplat_dr.training import Trainer
 from usplat_dr.training.config import model_from_config
-from usplat_dr.training.trainer import depth_loss
+from usplat_dr.training.trainer import depth_loss, target_depth_loss
 
 CONFIGS = Path(__file__).parents[2] / "usplat_dr" / "configs"
 pytestmark = pytest.mark.usefixtures("restore_threads")
@@ -72,6 +72,35 @@ def test_depth_loss_matches_a_float64_reference():
     assert none.item() == 0.0
 
 
+def test_target_depth_loss_matches_a_float64_reference():
+    g = torch.Generator().manual_seed(1)
+    b, n, h, w = 2, 3, 4, 5
+    alpha = torch.rand(b, n, h, w, generator=g)  # about half the pixels under 0.5
+    depth = alpha * (0.5 + 3 * torch.rand(b, n, h, w, generator=g))  # alpha-weighted z
+    z = 0.5 + 3 * torch.rand(b, n, h, w, generator=g)
+    z[0, 1, 2, 3] = math.inf  # a miss
+    z[1, 0, 0, 0] = 0.0  # no depth
+    terms = []
+    for i in range(b):
+        for j in range(n):
+            for y in range(h):
+                for x in range(w):
+                    a, t = alpha[i, j, y, x].double(), z[i, j, y, x].double()
+                    if math.isfinite(t) and t > 0 and a > 0.5:
+                        terms.append(abs(math.log(depth[i, j, y, x].double() / a / t)))
+    assert 10 < len(terms) < b * n * h * w  # the mask both keeps and drops pixels
+    depth.requires_grad_(True)
+    alpha.requires_grad_(True)
+    loss = target_depth_loss(depth, alpha, z)
+    # float32 logs of ratios in [0.15, 7], averaged over ~60 pixels: ~1e-7 relative
+    assert loss.item() == pytest.approx(sum(terms) / len(terms), rel=1e-5)
+    loss.backward()  # gradients reach both the depth and the opacity of the kept pixels
+    kept = torch.isfinite(z) & (z > 0) & (alpha.detach() > 0.5)
+    assert (depth.grad[kept] != 0).all() and (depth.grad[~kept] == 0).all()
+    assert (alpha.grad[kept] != 0).all()
+    assert target_depth_loss(depth, alpha, torch.full_like(z, math.inf)).item() == 0.0
+
+
 def test_context_depths_are_where_the_gaussians_sit(synth_root):
     torch.manual_seed(0)
     model = UniqueSplat.from_preset("tiny", variant="full").eval()
@@ -121,6 +150,29 @@ def test_depth_supervision_learns_depth(synth_root, tmp_path):
     assert "depth" in stats
     # Measured: 3.6 -> 1.0 (the sum of two mean |log| errors) in 60 steps on one scene; a
     # halving cannot come from noise.
+    assert after < 0.5 * before, (before, after)
+
+
+def test_target_depth_supervision_learns_the_rendered_depth(synth_root, tmp_path):
+    torch.manual_seed(0)
+    trainer = Trainer(config(synth_root, tmp_path, 60, "model.variant=baseline",
+                             "loss.depth=0.0", "loss.target_depth=1.0",
+                             "optimizer.warm_up_fraction=0.05"))
+    batch = trainer.batches.next()
+
+    def error():
+        trainer.model.eval()
+        with torch.no_grad():
+            out = trainer.model(*model_inputs(batch, trainer.device))
+        return target_depth_loss(out.depth, out.alpha, batch["target"]["depth"]).item()
+
+    before = error()
+    for _ in range(60):
+        stats = trainer.train_step(batch)
+    after = error()
+    assert "target_depth" in stats and "depth" not in stats
+    # Measured: 1.16 -> 0.012 (mean |log| error of the rendered target depth) in 60 steps on
+    # one scene; a halving cannot come from noise.
     assert after < 0.5 * before, (before, after)
 
 

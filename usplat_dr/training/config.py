@@ -53,7 +53,9 @@ class LossCfg:
     lpips_vgg: str | None = None  # torchvision vgg16-397923af.pth (needed once LPIPS is on)
     lpips_lin: str | None = None  # lpips/weights/v0.1/vgg.pth from the lpips pip package
     depth: float = 0.0  # weight of the log-depth L1 on the context views (docs/learning.md)
-    depth_until_step: int | None = None  # the depth term ends here (None: never)
+    # weight of the log-depth L1 on the rendered target views' depth (alpha > 0.5 pixels)
+    target_depth: float = 0.0
+    depth_until_step: int | None = None  # the depth terms end here (None: never)
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,7 @@ RANGES = {
     "loss.mse": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     "loss.lpips": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     "loss.depth": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
+    "loss.target_depth": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     "threads": (lambda v: v is None or v >= 1, "must be >= 1 (or null: cores / ranks)"),
     "data_loader.batch_size": (lambda v: v >= 1, "must be >= 1"),
     "data_loader.num_workers": (lambda v: v >= 0, "must be >= 0"),

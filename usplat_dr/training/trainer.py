@@ -155,6 +155,23 @@ def depth_loss(aux: dict, depth: torch.Tensor, intrinsics: torch.Tensor) -> torc
     return total
 
 
+def target_depth_loss(depth: torch.Tensor, alpha: torch.Tensor,
+                      true_z: torch.Tensor) -> torch.Tensor:
+    """Depth supervision of the rendered target views: mean |log(depth / alpha) - log z| over
+    the pixels with a finite positive ground-truth z that the rendering covers (alpha > 0.5,
+    the pixels the evaluation's AbsRel scores; ``evaluation.protocol.depth_metrics``).
+
+    ``depth`` and ``alpha`` [B, N, H, W] are the rasteriser's alpha-weighted camera-space z and
+    its opacity (gradients reach the Gaussians through both); ``true_z`` [B, N, H, W] the
+    synthetic ground truth (+inf on a miss). Zero when no pixel qualifies."""
+    valid = torch.isfinite(true_z) & (true_z > 0) & (alpha.detach() > 0.5)
+    if not valid.any():
+        return depth.new_zeros(())
+    # alpha > 0.5 on valid pixels; the clamp keeps log finite where a depth is exactly 0
+    pred = (depth[valid] / alpha[valid]).clamp(min=1e-6)
+    return (pred.log() - true_z[valid].log()).abs().mean()
+
+
 # ---- the trainer -------------------------------------------------------------------------------
 
 class Trainer:
@@ -257,8 +274,9 @@ class Trainer:
 
     # -- one step --
     def loss(self, out, batch: dict) -> tuple[torch.Tensor, dict]:
-        """MSE on the targets, + LPIPS after ``loss.lpips_after_step``, + the depth term
-        (``loss.depth`` > 0, until ``loss.depth_until_step``) where the data has depth."""
+        """MSE on the targets, + LPIPS after ``loss.lpips_after_step``, + the depth terms
+        (``loss.depth`` on the context views, ``loss.target_depth`` on the rendered targets;
+        until ``loss.depth_until_step``) where the data has depth."""
         pred = out.color
         target = batch["target"]["image"].to(self.device)
         mse = (pred - target).square().mean()
@@ -272,6 +290,11 @@ class Trainer:
                            batch["context"]["intrinsics"].to(self.device))
             loss = loss + lc.depth * d
             parts["depth"] = d.item()
+        if (lc.target_depth > 0 and (until is None or self.step < until)
+                and "depth" in batch["target"]):
+            d = target_depth_loss(out.depth, out.alpha, batch["target"]["depth"].to(self.device))
+            loss = loss + lc.target_depth * d
+            parts["target_depth"] = d.item()
         if self.lpips is not None and self.step >= lc.lpips_after_step:
             lp = self.lpips(pred.flatten(0, 1), target.flatten(0, 1)).mean()
             loss = loss + lc.lpips * lp
@@ -365,8 +388,8 @@ class Trainer:
                 with open(metrics_path) as f:
                     rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
             f = open(metrics_path, "w", newline="")
-            fields = ["step", "loss", "mse", "lpips", "depth", "psnr", "grad_norm",
-                      *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s"]
+            fields = ["step", "loss", "mse", "lpips", "depth", "target_depth", "psnr",
+                      "grad_norm", *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s"]
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
