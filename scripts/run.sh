@@ -7,6 +7,8 @@
 #   bash scripts/run.sh doctor         report versions, libLLVM, backends, GPU
 #   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench_rasterizer.py)
 #   bash scripts/run.sh setup          only install
+#   bash scripts/run.sh gpu-check      on a CUDA machine: the CUDA tests and the rasteriser
+#                                      benchmark on the GPU, a report in outputs/gpu_check/
 #
 # Each command first installs what it needs, once: Debian's libllvm19 when no libLLVM >= 19 is
 # present (Dr.Jit's CPU backend; 15 and 16 crash it), a virtual environment in .venv (or
@@ -71,6 +73,47 @@ ensure_venv() {
 
 setup() { ensure_python; ensure_libllvm; ensure_venv; }
 
+# A GPU machine may have no network: it uses the Python that has a CUDA torch (none is
+# installed), adds the wheels found in .whl/ (drjit's, jaxtyping's, ...: pip download them
+# where there is a network) to a private site folder, and leaves everything else alone.
+gpu_check() {
+    local out="$ROOT/outputs/gpu_check" site=/tmp/usplat-gpu-site
+    mkdir -p "$out"
+    if ls "$ROOT"/.whl/*.whl >/dev/null 2>&1; then
+        say "installing the wheels in .whl/ into $site"
+        "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
+            --upgrade --target "$site" "$ROOT"/.whl/*.whl >&2
+    fi
+    export PYTHONPATH="$site:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+    if ! "$PYTHON" -c 'import torch, sys; sys.exit(not torch.cuda.is_available())'; then
+        say "torch sees no CUDA GPU here: gpu-check needs a CUDA machine with torch installed"
+        exit 1
+    fi
+    if ! "$PYTHON" -c 'import usplat_dr, drjit as dr, sys; sys.exit(not dr.has_backend(dr.JitBackend.CUDA))'; then
+        say "Dr.Jit's CUDA backend is unavailable: put a drjit wheel for this Python in .whl/"
+        exit 1
+    fi
+    {
+        echo "# usplat-dr GPU check, $(date -u +%Y-%m-%dT%H:%MZ)"
+        echo
+        echo '```'
+        nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader || true
+        "$PYTHON" -c 'import sys, torch, drjit; print("python", sys.version.split()[0], "torch", torch.__version__, "cuda", torch.version.cuda, "drjit", drjit.__version__)'
+        echo '```'
+        echo
+        echo "## CUDA tests (pytest -k cuda: every test parametrised over the devices)"
+        echo
+        echo '```'
+        "$PYTHON" -m pytest -q -p no:cacheprovider -k cuda -rs tests 2>&1 | tail -n 40 || true
+        echo '```'
+        echo
+        echo "## Rasteriser on the GPU (train/bench_rasterizer.py --device cuda)"
+        echo
+        "$PYTHON" train/bench_rasterizer.py --device cuda --dense-max 0 2>&1 || true
+    } | tee "$out/report.md"
+    say "report: $out/report.md"
+}
+
 command=${1:-}
 [ $# -gt 0 ] && shift
 case "$command" in
@@ -79,5 +122,6 @@ case "$command" in
     test) setup; cd "$ROOT"; exec "$VENV/bin/python" -m pytest "$@" ;;
     doctor) setup; exec "$VENV/bin/usplat" doctor ;;
     bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench_rasterizer.py "$@" ;;
-    *) sed -n '2,13p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+    gpu-check) cd "$ROOT"; gpu_check "$@" ;;
+    *) sed -n '2,15p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

@@ -11,6 +11,7 @@ in memory, with ratios. Prints a Markdown table.
 
     bash scripts/run.sh bench                 # all sizes
     bash scripts/run.sh bench --sizes 64 --runs 9
+    python train/bench_rasterizer.py --device cuda    # Dr.Jit's CUDA backend (a GPU machine)
 """
 
 import argparse
@@ -40,13 +41,16 @@ def _leaves(scene):
 
 
 def make_fns(scene, settings, render=rasterize):
+    """Forward and forward+backward of one scene; on CUDA each waits for the GPU to finish."""
     cams = scene.args()[:6]
+    sync = torch.cuda.synchronize if scene.means.is_cuda else (lambda: None)
     fixed = [t.detach() for t in (scene.means, scene.covariances, scene.sh_coefficients,
                                   scene.opacities)]
 
     def fwd():
         with torch.no_grad():
             out = render(*cams, *fixed, settings) if settings else render(*cams, *fixed)
+        sync()
         return out
 
     def fwd_bwd():
@@ -54,6 +58,7 @@ def make_fns(scene, settings, render=rasterize):
         out = render(*cams, *leaves, settings) if settings else render(*cams, *leaves)
         c, a, d = (out.color, out.alpha, out.depth) if hasattr(out, "color") else out
         (c.sum() + a.sum() + d.sum()).backward()
+        sync()
         return [t.grad for t in leaves]
 
     return fwd, fwd_bwd
@@ -85,22 +90,23 @@ COLD_START = """
 import time, torch, usplat_dr
 from usplat_dr.render import rasterize
 from usplat_dr.render.scenes import pixel_aligned_scene
-s = pixel_aligned_scene({size}, {size}, seed=0)
+s = pixel_aligned_scene({size}, {size}, seed=0).to("{device}")
 leaves = [t.clone().requires_grad_(True) for t in (s.means, s.covariances, s.sh_coefficients,
                                                    s.opacities)]
 t0 = time.perf_counter()
 out = rasterize(*s.args()[:6], *leaves)
 (out.color.sum() + out.alpha.sum() + out.depth.sum()).backward()
+torch.cuda.synchronize() if "{device}" == "cuda" else None
 print((time.perf_counter() - t0) * 1e3)
 """
 
 
-def cold_start_ms(size: int) -> float:
+def cold_start_ms(size: int, device: str = "cpu") -> float:
     """First forward+backward in a new process with an empty Dr.Jit kernel cache (Dr.Jit keeps
     its on-disk cache under $HOME/.drjit: a temporary HOME empties it)."""
     with tempfile.TemporaryDirectory() as home:
         env = dict(os.environ, HOME=home)
-        out = subprocess.run([sys.executable, "-c", COLD_START.format(size=size)], env=env,
+        out = subprocess.run([sys.executable, "-c", COLD_START.format(size=size, device=device)], env=env,
                              capture_output=True, text=True, check=True, cwd=ROOT)
     return float(out.stdout.strip().splitlines()[-1])
 
@@ -112,23 +118,31 @@ def main() -> None:
     parser.add_argument("--dense-max", type=int, default=64,
                         help="largest image size for the dense torch reference (memory)")
     parser.add_argument("--breakdown", action="store_true", help="print per-kernel times")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                        help="cpu: Dr.Jit's LLVM backend; cuda: its CUDA backend")
     args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: torch sees no CUDA GPU on this machine")
 
     sys.path.insert(0, str(ROOT / "tests" / "render"))
     from reference import render_ref
 
     torch.set_flush_denormal(True)  # the dense reference is 2x slower on denormals
     load = os.getloadavg()
+    llvm = ("none" if not dr.has_backend(dr.JitBackend.LLVM)
+            else ".".join(map(str, dr.detail.llvm_version())))
     print(f"# {platform.node()} {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, load {load[0]:.2f}; drjit {dr.__version__}, "
-          f"torch {torch.__version__}, libLLVM {'.'.join(map(str, dr.detail.llvm_version()))}, "
-          f"Dr.Jit threads {dr.thread_count()}, torch threads {torch.get_num_threads()}")
+          f"torch {torch.__version__}, libLLVM {llvm}, "
+          f"Dr.Jit threads {dr.thread_count()}, torch threads {torch.get_num_threads()}; "
+          f"device {args.device}"
+          + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda" else ""))
     print("\n| image | Gaussians | pairs | fwd ms (CPU ms) | fwd+bwd ms (CPU ms) | "
           "cold start ms | Dr.Jit peak MB | dense torch fwd / fwd+bwd ms | speed-up fwd / "
           "fwd+bwd | target fwd / fwd+bwd ms |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for size in args.sizes:
-        scene = pixel_aligned_scene(size, size, seed=0)
+        scene = pixel_aligned_scene(size, size, seed=0).to(args.device)
         fwd, fwd_bwd = make_fns(scene, RasterSettings())
         for _ in range(2):  # warm-up: compile (or load) kernels
             fwd()
@@ -142,9 +156,10 @@ def main() -> None:
         t = time_interleaved(fns, runs)
         dr.detail.malloc_clear_statistics()
         fwd_bwd()
-        peak = dr.detail.malloc_watermark(dr.JitBackend.LLVM) / 2**20
+        backend = dr.JitBackend.CUDA if args.device == "cuda" else dr.JitBackend.LLVM
+        peak = dr.detail.malloc_watermark(backend) / 2**20
         pairs = fwd().aux["num_pairs"]
-        cold = cold_start_ms(size)
+        cold = cold_start_ms(size, args.device)
         f, fb = t["fwd"], t["fwd_bwd"]
         dense_cols = ("-", "-")
         if dense:

@@ -98,7 +98,7 @@ def train_steps(model, args, steps: int, seed: int = 0, lr: float = 1e-3):
     """A few Adam steps on one scene: renders of the targets against fixed random images."""
     gen = torch.Generator().manual_seed(seed)
     n = args.target_intrinsics.shape[1]
-    gt = torch.rand(1, n, 3, 64, 64, generator=gen)
+    gt = torch.rand(1, n, 3, 64, 64, generator=gen).to(args.images.device)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     model.train()
     for _ in range(steps):
@@ -166,10 +166,12 @@ def test_delta_init_std_opens_the_view_specific_gradient_path(init_std):
         assert resnet > 0 and largest_u > 0
 
 
-def test_each_target_renders_its_own_gaussians():
+def test_each_target_renders_its_own_gaussians(device):
+    # On every available device (conftest: CPU always, CUDA where present): a training step,
+    # the per-target forward and the rasteriser on that device's Dr.Jit backend.
     torch.manual_seed(1)
-    model = UniqueSplat.from_preset("tiny", variant="full")
-    args = scene(n=2)
+    model = UniqueSplat.from_preset("tiny", variant="full").to(device)
+    args = SceneInputs(*(t.to(device) for t in scene(n=2)))
     train_steps(model, args, 2)
     model.eval()
     with torch.no_grad():
@@ -178,7 +180,8 @@ def test_each_target_renders_its_own_gaussians():
     _, _, _, _, _, tk, te, tn, tf = args
     for i in range(2):
         g = out.target(0, i)
-        r = rasterize(te[:, i], tk[:, i], tn[:, i], tf[:, i], (64, 64), torch.zeros(1, 3),
+        r = rasterize(te[:, i], tk[:, i], tn[:, i], tf[:, i], (64, 64),
+                      torch.zeros(1, 3, device=device),
                       g.means, g.covariances, g.harmonics, g.opacities,
                       RasterSettings(sh_basis="mvsplat"))
         # the same rasteriser on the same inputs, batched or not: bit-identical images
