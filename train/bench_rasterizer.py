@@ -106,8 +106,9 @@ def cold_start_ms(size: int, device: str = "cpu") -> float:
     its on-disk cache under $HOME/.drjit: a temporary HOME empties it)."""
     with tempfile.TemporaryDirectory() as home:
         env = dict(os.environ, HOME=home)
-        out = subprocess.run([sys.executable, "-c", COLD_START.format(size=size, device=device)], env=env,
-                             capture_output=True, text=True, check=True, cwd=ROOT)
+        code = COLD_START.format(size=size, device=device)
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                             text=True, check=True, cwd=ROOT)
     return float(out.stdout.strip().splitlines()[-1])
 
 

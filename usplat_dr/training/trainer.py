@@ -389,7 +389,8 @@ class Trainer:
                     rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
             f = open(metrics_path, "w", newline="")
             fields = ["step", "loss", "mse", "lpips", "depth", "target_depth", "psnr",
-                      "grad_norm", *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s"]
+                      "grad_norm", *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s",
+                      "time_s"]
             writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
