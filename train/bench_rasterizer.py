@@ -7,7 +7,8 @@ inputs evaluated) through the torch entry point, after warm-up, runs interleaved
 process CPU time; Dr.Jit's peak allocation for one forward+backward; the cold-start time (first
 call in a new process with an empty kernel cache, measured in a subprocess); and the dense torch
 float32 reference (every pixel against every Gaussian, tests/render/reference.py) where it fits
-in memory, with ratios. Prints a Markdown table.
+in memory, with ratios; and the same calls through the Dr.Jit entry (``rasterize_drjit``), whose
+difference from the torch entry is the bridge's cost. Prints Markdown tables.
 
     bash scripts/run.sh bench                 # all sizes
     bash scripts/run.sh bench --sizes 64 --runs 9
@@ -28,7 +29,9 @@ import drjit as dr
 import torch
 
 import usplat_dr  # noqa: F401  (chooses libLLVM first)
+from usplat_dr.backend import module_for
 from usplat_dr.render import RasterSettings, rasterize
+from usplat_dr.render.pipeline import rasterize_drjit
 from usplat_dr.render.scenes import pixel_aligned_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,6 +63,35 @@ def make_fns(scene, settings, render=rasterize):
         (c.sum() + a.sum() + d.sum()).backward()
         sync()
         return [t.grad for t in leaves]
+
+    return fwd, fwd_bwd
+
+
+def make_native_fns(scene, settings):
+    """The same two calls through the Dr.Jit entry (``rasterize_drjit`` on TensorXf, no value
+    checks, outputs and gradients evaluated): the torch entry's time minus this is the bridge
+    (conversions, ``drjit.wrap``, the input checks' host read)."""
+    mod = module_for("cuda" if scene.means.is_cuda else "llvm")
+    tensors = [mod.TensorXf(t.contiguous()) if isinstance(t, torch.Tensor) else t
+               for t in scene.args()]
+    cams, fixed = tensors[:6], tensors[6:]
+
+    def fwd():
+        out = rasterize_drjit(*cams, *fixed, settings, check=False)
+        dr.eval(out.color, out.alpha, out.depth, out.aux["radii"])
+        dr.sync_thread()
+        return out
+
+    def fwd_bwd():
+        leaves = [mod.TensorXf(t) for t in fixed]
+        for t in leaves:
+            dr.enable_grad(t)
+        out = rasterize_drjit(*cams, *leaves, settings, check=False)
+        dr.backward(dr.sum(out.color.array) + dr.sum(out.alpha.array) + dr.sum(out.depth.array))
+        grads = [dr.grad(t) for t in leaves]
+        dr.eval(*grads)
+        dr.sync_thread()
+        return grads
 
     return fwd, fwd_bwd
 
@@ -142,13 +174,18 @@ def main() -> None:
           "cold start ms | Dr.Jit peak MB | dense torch fwd / fwd+bwd ms | speed-up fwd / "
           "fwd+bwd | target fwd / fwd+bwd ms |")
     print("|---|---|---|---|---|---|---|---|---|---|")
+    bridge_rows = []
     for size in args.sizes:
         scene = pixel_aligned_scene(size, size, seed=0).to(args.device)
         fwd, fwd_bwd = make_fns(scene, RasterSettings())
         for _ in range(2):  # warm-up: compile (or load) kernels
             fwd()
             fwd_bwd()
-        fns = {"fwd": fwd, "fwd_bwd": fwd_bwd}
+        n_fwd, n_fwd_bwd = make_native_fns(scene, RasterSettings())
+        for _ in range(2):
+            n_fwd()
+            n_fwd_bwd()
+        fns = {"fwd": fwd, "fwd_bwd": fwd_bwd, "native_fwd": n_fwd, "native_fwd_bwd": n_fwd_bwd}
         dense = size <= args.dense_max
         if dense:
             d_fwd, d_fwd_bwd = make_fns(scene, None, render_ref)
@@ -167,6 +204,9 @@ def main() -> None:
             df, dfb = t["dense_fwd"], t["dense_fwd_bwd"]
             dense_cols = (f"{df[0]:.0f} / {dfb[0]:.0f}", f"{df[0] / f[0]:.0f}x / "
                           f"{dfb[0] / fb[0]:.0f}x")
+        nf, nfb = t["native_fwd"], t["native_fwd_bwd"]
+        bridge_rows.append(f"| {size}x{size} | {f[0]:.2f} | {nf[0]:.2f} | {f[0] - nf[0]:+.2f} | "
+                           f"{fb[0]:.2f} | {nfb[0]:.2f} | {fb[0] - nfb[0]:+.2f} |")
         target = TARGETS.get(size)
         print(f"| {size}x{size} | {scene.means.shape[1]:,} | {pairs:,} | {f[0]:.1f} ({f[1]:.1f}) "
               f"| {fb[0]:.1f} ({fb[1]:.1f}) | {cold:.0f} | {peak:.0f} | {dense_cols[0]} | "
@@ -177,6 +217,12 @@ def main() -> None:
                 total = sum(r[0] for r in rows)
                 top = ", ".join(f"{ms:.1f} ({kind}, {n:,})" for ms, n, kind in rows[:6])
                 print(f"|   {name} kernels: {len(rows)}, {total:.1f} ms; largest: {top} |")
+    print("\nThe torch bridge: medians of the same interleaved runs, torch `rasterize` against the "
+          "Dr.Jit entry `rasterize_drjit` (target: <= 1 ms overhead)\n")
+    print("| image | torch fwd ms | Dr.Jit fwd ms | bridge fwd ms | torch fwd+bwd ms | "
+          "Dr.Jit fwd+bwd ms | bridge fwd+bwd ms |")
+    print("|---|---|---|---|---|---|---|")
+    print("\n".join(bridge_rows))
 
 
 if __name__ == "__main__":
