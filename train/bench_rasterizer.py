@@ -96,6 +96,24 @@ def make_native_fns(scene, settings):
     return fwd, fwd_bwd
 
 
+def previous_value_flags(tensors, near, far) -> list[bool]:
+    """The input value checks as the bridge did them before 2026-11-25 (torch reductions, one
+    host read): the baseline the current ``bridge._value_flags`` is timed against."""
+    flags = torch.stack([torch.isfinite(t.detach()).all() for t in tensors]
+                        + [(near.detach() > 0).all(), (far.detach() > near.detach()).all()])
+    return flags.cpu().tolist()
+
+
+def make_check_fns(scene) -> dict:
+    """The torch entry's value checks alone, previous and current code."""
+    from usplat_dr.render.bridge import _value_flags
+
+    args = [t for t in scene.args() if isinstance(t, torch.Tensor)]
+    near, far = scene.args()[2], scene.args()[3]
+    return {"checks_previous": lambda: previous_value_flags(args, near, far),
+            "checks_now": lambda: _value_flags(args, near, far)}
+
+
 def time_interleaved(fns: dict, runs: int) -> dict:
     """Median wall and process CPU time (ms) of each function, runs interleaved."""
     samples = {name: ([], []) for name in fns}
@@ -185,7 +203,8 @@ def main() -> None:
         for _ in range(2):
             n_fwd()
             n_fwd_bwd()
-        fns = {"fwd": fwd, "fwd_bwd": fwd_bwd, "native_fwd": n_fwd, "native_fwd_bwd": n_fwd_bwd}
+        fns = {"fwd": fwd, "fwd_bwd": fwd_bwd, "native_fwd": n_fwd, "native_fwd_bwd": n_fwd_bwd,
+               **make_check_fns(scene)}
         dense = size <= args.dense_max
         if dense:
             d_fwd, d_fwd_bwd = make_fns(scene, None, render_ref)
@@ -205,8 +224,10 @@ def main() -> None:
             dense_cols = (f"{df[0]:.0f} / {dfb[0]:.0f}", f"{df[0] / f[0]:.0f}x / "
                           f"{dfb[0] / fb[0]:.0f}x")
         nf, nfb = t["native_fwd"], t["native_fwd_bwd"]
+        cp, cn = t["checks_previous"], t["checks_now"]
         bridge_rows.append(f"| {size}x{size} | {f[0]:.2f} | {nf[0]:.2f} | {f[0] - nf[0]:+.2f} | "
-                           f"{fb[0]:.2f} | {nfb[0]:.2f} | {fb[0] - nfb[0]:+.2f} |")
+                           f"{fb[0]:.2f} | {nfb[0]:.2f} | {fb[0] - nfb[0]:+.2f} | "
+                           f"{cp[0]:.2f} ({cp[1]:.2f}) | {cn[0]:.2f} ({cn[1]:.2f}) |")
         target = TARGETS.get(size)
         print(f"| {size}x{size} | {scene.means.shape[1]:,} | {pairs:,} | {f[0]:.1f} ({f[1]:.1f}) "
               f"| {fb[0]:.1f} ({fb[1]:.1f}) | {cold:.0f} | {peak:.0f} | {dense_cols[0]} | "
@@ -218,10 +239,12 @@ def main() -> None:
                 top = ", ".join(f"{ms:.1f} ({kind}, {n:,})" for ms, n, kind in rows[:6])
                 print(f"|   {name} kernels: {len(rows)}, {total:.1f} ms; largest: {top} |")
     print("\nThe torch bridge: medians of the same interleaved runs, torch `rasterize` against the "
-          "Dr.Jit entry `rasterize_drjit` (target: <= 1 ms overhead)\n")
+          "Dr.Jit entry `rasterize_drjit` (target: <= 1 ms overhead), and the torch entry's "
+          "input value checks alone, as before (torch reductions) and now (NumPy on the CPU), "
+          "ms (CPU ms)\n")
     print("| image | torch fwd ms | Dr.Jit fwd ms | bridge fwd ms | torch fwd+bwd ms | "
-          "Dr.Jit fwd+bwd ms | bridge fwd+bwd ms |")
-    print("|---|---|---|---|---|---|---|")
+          "Dr.Jit fwd+bwd ms | bridge fwd+bwd ms | checks before | checks now |")
+    print("|---|---|---|---|---|---|---|---|---|")
     print("\n".join(bridge_rows))
 
 

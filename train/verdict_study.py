@@ -10,7 +10,8 @@ of them on the same held-out scenes, and compare paired per-scene differences wi
 Each run trains and evaluates in its own process with one thread (``--jobs`` at a time) and
 is resumable: a second call skips finished runs and resumes killed ones. Writes
 ``<out>/verdict.md``, ``verdict.json``, ``verdict.png`` and ``runs.json`` (steps and seconds
-per step of every run: the equal-wall-time view).
+per step of every run: the equal-wall-time view); ``--also-eval`` repeats the comparison on
+more held-out sets (``verdict_<set>.md``), the same runs on other scenes.
 """
 
 import argparse
@@ -107,6 +108,10 @@ def main(argv=None) -> int:
     p.add_argument("--wall-ratio", type=float, default=None,
                    help="also train (a) for this many times the steps: (a) at (c)'s wall time "
                         "(the ratio of their seconds per step, train/bench_training.py)")
+    p.add_argument("--also-eval", nargs="+", default=[], metavar="DATA",
+                   help="more held-out sets: every run is evaluated on each as well (in "
+                        "<run>/eval_<folder name>) and each gets its own verdict_<folder "
+                        "name>.md / .png")
     p.add_argument("--job", nargs=2, metavar=("VARIANT", "SEED"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -135,35 +140,70 @@ def main(argv=None) -> int:
         codes = list(pool.map(launch, jobs))
     if any(codes):
         return 1
+    infos = [json.loads((out / run_name(v, s) / "run.json").read_text()) for v, s in jobs]
+    from usplat_dr.io import write_json
+
+    write_json(out / "runs.json", infos)
+    speed = {v: sum(i["train_seconds"] for i in infos if i["variant"] == v)
+             / sum(i["steps"] for i in infos if i["variant"] == v)
+             for v in {v for v, _ in jobs}}
+    text = write_verdict(args, out, "eval", "", f"`{args.eval_data}`")
+    text += ("Seconds per training step (one thread, including start-up; a resumed run counts "
+             "its last segment only): "
+             + ", ".join(f"{v} {s:.3f}" for v, s in sorted(speed.items())) + "\n")
+    (out / "verdict.md").write_text(text)
+    print(text)
+    for data in args.also_eval:
+        name = Path(data).resolve().name
+        evaluate_again(args, out, jobs, data, f"eval_{name}")
+        text = write_verdict(args, out, f"eval_{name}", f"_{name}", f"`{data}`")
+        (out / f"verdict_{name}.md").write_text(text)
+        print(text)
+    return 0
+
+
+def evaluate_again(args, out: Path, jobs, data: str, eval_name: str) -> None:
+    """Evaluate every finished run's last checkpoint on another held-out set (one thread,
+    in this process; runs already evaluated there are skipped)."""
+    import torch
+
+    from usplat_dr.evaluation import evaluate, synthetic_indices
+    from usplat_dr.training.checkpoints import load_model
+
+    torch.set_num_threads(1)
+    for variant, seed in jobs:
+        run = out / run_name(variant, seed)
+        if (run / eval_name / "per_scene.csv").is_file():
+            continue
+        model, _ = load_model(run / "checkpoints" / "last.ckpt")
+        evaluate(model, {"name": "synth", "roots": [data], "image_shape": [args.size, args.size]},
+                 synthetic_indices(data), run / eval_name, images_per_split=2, progress=False,
+                 label=f"{variant} seed {seed} on {data}")
+        print(f"{variant} seed {seed}: evaluated on {data}", flush=True)
+
+
+def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> str:
+    """The paired comparison of the runs' evaluations in ``<run>/<eval_name>``: writes
+    ``verdict<suffix>.json`` and ``.png``, returns the Markdown tables."""
     from usplat_dr.evaluation.verdict import as_dicts, chart, compare, table
     from usplat_dr.io import write_json
 
     def csvs(v):
-        return [out / run_name(v, s) / "eval" / "per_scene.csv" for s in args.seeds]
+        return [out / run_name(v, s) / eval_name / "per_scene.csv" for s in args.seeds]
 
     rows = compare({v: csvs(v) for v in args.variants})
     wall_rows = (compare({"baseline": csvs("baseline_wall"), "full": csvs("full")})
                  if args.wall_ratio and "full" in args.variants else [])
-    infos = [json.loads((out / run_name(v, s) / "run.json").read_text()) for v, s in jobs]
-    write_json(out / "runs.json", infos)
-    write_json(out / "verdict.json", {"args": vars(args), "rows": as_dicts(rows),
-                                      "equal_wall_time_rows": as_dicts(wall_rows)})
-    chart(rows, out / "verdict.png")
-    speed = {v: sum(i["train_seconds"] for i in infos if i["variant"] == v)
-             / sum(i["steps"] for i in infos if i["variant"] == v)
-             for v in {v for v, _ in jobs}}
+    write_json(out / f"verdict{suffix}.json", {"args": vars(args), "held_out": where,
+                                               "rows": as_dicts(rows),
+                                               "equal_wall_time_rows": as_dicts(wall_rows)})
+    chart(rows, out / f"verdict{suffix}.png")
     text = (f"# Verdict: {len(args.seeds)} seeds x {args.steps} fine-tuning steps from "
-            f"`{args.init}`\n\n## Equal steps\n\n{table(rows)}\n\n")
+            f"`{args.init}`, evaluated on {where}\n\n## Equal steps\n\n{table(rows)}\n\n")
     if wall_rows:
         text += (f"## Equal wall time: (c) against (a) trained {args.wall_ratio:g}x the "
                  f"steps\n\n{table(wall_rows)}\n\n")
-    text += ("Seconds per training step (one thread, including start-up): "
-             + ", ".join(f"{v} {s:.3f}" for v, s in sorted(speed.items()))
-             + "\n\n![](verdict.png)\n")
-    (out / "verdict.md").write_text(text)
-    print(text)
-    return 0
-
+    return text + f"![](verdict{suffix}.png)\n\n"
 
 if __name__ == "__main__":
     sys.exit(main())

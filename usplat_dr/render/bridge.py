@@ -8,6 +8,7 @@ import functools
 from dataclasses import dataclass, field
 
 import drjit as dr
+import numpy as np
 import torch
 from jaxtyping import Float
 from torch import Tensor
@@ -50,10 +51,7 @@ def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_colo
         if t.device != device:
             raise ValueError(f"{name} must be on {device} like extrinsics, got {t.device}")
     check_shapes(image_shape, {name: t.shape for name, t in named.items()})
-    # One host read for all checks (the answer decides whether to raise).
-    flags = torch.stack([torch.isfinite(t.detach()).all() for t in named.values()]
-                        + [(near.detach() > 0).all(), (far.detach() > near.detach()).all()])
-    flags = flags.cpu().tolist()
+    flags = _value_flags(list(named.values()), near, far)
     for ok, name in zip(flags, named):
         if not ok:
             raise ValueError(f"{name} must be finite, got NaN or Inf values")
@@ -62,6 +60,25 @@ def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_colo
     if not flags[-1]:
         raise ValueError(f"far must be > near, got near={near.detach().cpu().tolist()} "
                          f"far={far.detach().cpu().tolist()}")
+
+
+def _value_flags(tensors: list[Tensor], near: Tensor, far: Tensor) -> list[bool]:
+    """Finite per tensor, then near > 0 and far > near, as Python booleans.
+
+    On the CPU the checks run in NumPy on the tensors' own memory: a torch reduction over a
+    few hundred thousand values is split across torch's OpenMP threads, and on a loaded
+    2-core machine waiting for the second core cost about 40 ms per call (0.24 ms on one
+    thread; BENCHMARKS.md, "The torch bridge"). On a GPU the checks stay on the device with
+    one host read for all of them.
+    """
+    if near.device.type == "cpu":
+        arrays = [t.detach().numpy() for t in tensors]
+        n, f = near.detach().numpy(), far.detach().numpy()
+        return ([bool(np.isfinite(a).all()) for a in arrays]
+                + [bool((n > 0).all()), bool((f > n).all())])
+    flags = torch.stack([torch.isfinite(t.detach()).all() for t in tensors]
+                        + [(near.detach() > 0).all(), (far.detach() > near.detach()).all()])
+    return flags.cpu().tolist()
 
 
 @functools.lru_cache(maxsize=64)
