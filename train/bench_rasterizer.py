@@ -12,6 +12,7 @@ difference from the torch entry is the bridge's cost. Prints Markdown tables.
 
     bash scripts/run.sh bench                 # all sizes
     bash scripts/run.sh bench --sizes 64 --runs 9
+    bash scripts/run.sh bench --threads 1     # as training runs (threads=1)
     python train/bench_rasterizer.py --device cuda    # Dr.Jit's CUDA backend (a GPU machine)
 """
 
@@ -171,7 +172,15 @@ def main() -> None:
     parser.add_argument("--breakdown", action="store_true", help="print per-kernel times")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                         help="cpu: Dr.Jit's LLVM backend; cuda: its CUDA backend")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch and Dr.Jit threads (default: theirs, one per core); 1 is "
+                             "how training runs (threads=1)")
     args = parser.parse_args()
+    if args.threads is not None:
+        if args.threads < 1:
+            parser.error(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+        dr.set_thread_count(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: torch sees no CUDA GPU on this machine")
 
