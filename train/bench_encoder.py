@@ -1,11 +1,13 @@
 """Primary-network (MVSplat encoder) forward time and peak memory: 2 views at 256x256, batch 1,
-2 threads, ``inference_mode``, the RealEstate10K configuration with random weights.
+2 threads (``--threads``), ``inference_mode``, the RealEstate10K configuration with random weights.
 
 Each configuration runs in its own process (so its peak RSS is its own), interleaved
 ``--rounds`` times; each process times ``--repeats`` forwards after one warm-up and reports the
 median wall time, process CPU time per forward and peak RSS. Baseline, measured in the same
 run: our network with the reference's plane sweep (``cost_volume_method="warp"`` with all 128
 candidates warped at once, i.e. the full warped feature volume the official code builds).
+The last configuration is the default one under bfloat16 autocast (the model's
+``inference_precision = "bfloat16"``).
 The official code's numbers on another 2-core machine (docs/mvsplat_notes.md sec. 2) are printed
 for reference: 4.9 s, 1.7 GiB.
 
@@ -23,10 +25,13 @@ CONFIGS = {
     "baseline: full warped volume": {"cost_volume_method": "warp", "cost_volume_chunk": 128},
     "ours: warp, 16-candidate chunks": {"cost_volume_method": "warp", "cost_volume_chunk": 16},
     "ours (default): gram": {},
+    # bfloat16 autocast (UniqueSplat.inference_precision = "bfloat16"; not a config field)
+    "ours: gram, bfloat16 autocast": {"_precision": "bfloat16"},
 }
 
 
-def child(cfg: dict, size: int, repeats: int, out: str) -> None:
+def child(cfg: dict, size: int, repeats: int, out: str, threads: int) -> None:
+    import contextlib
     import resource
     import time
 
@@ -34,7 +39,10 @@ def child(cfg: dict, size: int, repeats: int, out: str) -> None:
 
     from usplat_dr.model import PrimaryNetwork, PrimaryNetworkCfg
 
-    torch.set_num_threads(2)
+    torch.set_num_threads(threads)
+    precision = cfg.pop("_precision", "float32")
+    autocast = (torch.autocast("cpu", dtype=torch.bfloat16) if precision == "bfloat16"
+                else contextlib.nullcontext())
     torch.manual_seed(0)
     net = PrimaryNetwork(PrimaryNetworkCfg.from_dict(cfg)).eval()
     e = torch.eye(4).repeat(1, 2, 1, 1)
@@ -43,7 +51,7 @@ def child(cfg: dict, size: int, repeats: int, out: str) -> None:
     x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
     args = (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2))
     walls, cpus = [], []
-    with torch.inference_mode():
+    with torch.inference_mode(), autocast:
         g = net(*args)
         for _ in range(repeats):
             w, c = time.perf_counter(), time.process_time()
@@ -61,12 +69,13 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--threads", type=int, default=2, help="torch threads")
     ap.add_argument("--child", help=argparse.SUPPRESS)  # internal: one measurement
     ap.add_argument("--child-out", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         cfg, out = json.loads(args.child), args.child_out
-        return child(cfg, args.size, args.repeats, out)
+        return child(cfg, args.size, args.repeats, out, args.threads)
     import torch
 
     results = {name: [] for name in CONFIGS}
@@ -75,7 +84,8 @@ def main() -> None:
             for i, (name, cfg) in enumerate(CONFIGS.items()):
                 out = f"{tmp}/{i}.json"
                 subprocess.run([sys.executable, __file__, "--size", str(args.size),
-                                "--repeats", str(args.repeats), "--child", json.dumps(cfg),
+                                "--repeats", str(args.repeats), "--threads", str(args.threads),
+                                "--child", json.dumps(cfg),
                                 "--child-out", out], check=True)
                 with open(out) as f:
                     results[name].append(json.load(f))
@@ -84,7 +94,8 @@ def main() -> None:
         ref_means = results["baseline: full warped volume"][0]["means"]
         base_wall = min(x["wall"] for x in results["baseline: full warped volume"])
         base_rss = min(x["rss_gib"] for x in results["baseline: full warped volume"])
-        print(f"encoder forward, 2 views {args.size}x{args.size}, batch 1, 2 threads, best of "
+        print(f"encoder forward, 2 views {args.size}x{args.size}, batch 1, {args.threads} "
+              f"thread(s), best of "
               f"{args.rounds} processes (median of {args.repeats} forwards each)")
         for name, runs in results.items():
             wall = min(x["wall"] for x in runs)

@@ -90,9 +90,10 @@ def child_memory(preset: str, size: int, cfg: list, out: str) -> None:
         json.dump({"rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}, f)
 
 
-def run_child(mode: str, payload: list, repeats: int, out: str) -> dict:
-    subprocess.run([sys.executable, __file__, "--repeats", str(repeats), "--child", mode,
-                    "--payload", json.dumps(payload + [out])], check=True)
+def run_child(mode: str, payload: list, repeats: int, out: str, threads: int = 2) -> dict:
+    subprocess.run([sys.executable, __file__, "--repeats", str(repeats), "--threads",
+                    str(threads), "--child", mode, "--payload", json.dumps(payload + [out])],
+                   check=True)
     with open(out) as f:
         return json.load(f)
 
@@ -105,16 +106,25 @@ def main() -> None:
                     choices=sorted(SETTINGS))
     ap.add_argument("--both", action="store_true",
                     help="also (c) with Delta W on both Gaussian-head convolutions")
+    ap.add_argument("--threads", type=int, default=2,
+                    help="torch and Dr.Jit threads (1: how training runs, and a fair "
+                         "measurement while another one-thread job holds the other core)")
     ap.add_argument("--child", help=argparse.SUPPRESS)  # internal: one measurement
     ap.add_argument("--payload", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.threads < 1:
+        ap.error(f"--threads must be >= 1, got {args.threads}")
     import logging
 
     logging.disable(logging.WARNING)  # the ResNet18 random-initialisation warning
     if args.child:
         import torch
 
-        torch.set_num_threads(2)
+        import usplat_dr  # noqa: F401  (points Dr.Jit at libLLVM before drjit is imported)
+        import drjit as dr
+
+        torch.set_num_threads(args.threads)
+        dr.set_thread_count(args.threads)
         payload = json.loads(args.payload)
         if args.child == "times":
             return child_times(*payload[:3], args.repeats, payload[3])
@@ -124,11 +134,12 @@ def main() -> None:
     for setting in args.setting:
         preset, size = SETTINGS[setting]
         with tempfile.TemporaryDirectory() as tmp:
-            runs = [run_child("times", [preset, size, configs], args.repeats, f"{tmp}/t{i}.json")
+            runs = [run_child("times", [preset, size, configs], args.repeats,
+                              f"{tmp}/t{i}.json", args.threads)
                     for i in range(args.processes)]
             rss = {name: run_child("memory", [preset, size, list(cfg)], 0,
                                    f"{tmp}/m.json")["rss_gib"] for name, cfg in configs.items()}
-        print(f"\n{preset} preset, {size}x{size}, 2 context + 3 targets, batch 1, 2 threads; "
+        print(f"\n{preset} preset, {size}x{size}, 2 context + 3 targets, batch 1, {args.threads} thread(s); "
               f"variants alternated run by run, best of {args.processes} processes (median of "
               f"{args.repeats} runs each)")
 

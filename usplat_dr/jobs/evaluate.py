@@ -25,6 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="prune the Gaussians per target view before rendering, as the model "
                    "does at inference (exact culling + merging near-duplicates): faster, "
                    "within 0.05 dB; off by default so the numbers come from the exact model")
+    p.add_argument("--precision", default="float32", choices=["float32", "bfloat16"],
+                   help="the networks' inference precision (bfloat16: torch autocast, faster "
+                        "on CPUs with AVX-512-BF16 or AMX; geometry and rendering stay "
+                        "float32; BENCHMARKS.md, \"bfloat16 inference\")")
     p.add_argument("--lpips-vgg", help="torchvision vgg16-397923af.pth (for LPIPS)")
     p.add_argument("--lpips-lin", help="lpips/weights/v0.1/vgg.pth (for LPIPS)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
@@ -43,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     if args.lpips_vgg or args.lpips_lin:
         lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)
     model, step = load_model(args.checkpoint, args.device, args.trust_checkpoint)
+    model.inference_precision = args.precision
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
                        prune=model.inference_prune if args.prune else None)

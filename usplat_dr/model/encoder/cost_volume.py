@@ -135,8 +135,10 @@ def plane_sweep_correlation(features: Float[Tensor, "b v c h w"],
     for s, pose in enumerate(relative_poses(extrinsics), start=1):
         order = [(i + s) % v for i in range(v)]
         other = features[:, order].transpose(0, 1).reshape(v * b, c, h, w)
-        with torch.no_grad():
-            grid = warp_grid(k, pose, depth.detach(), h, w)  # [VB, D, HW, 2]
+        # Geometry in float32 whatever autocast says: in bfloat16 the pixel coordinates round
+        # by up to a pixel and the gathered corner indices run past the image.
+        with torch.no_grad(), torch.autocast(k.device.type, enabled=False):
+            grid = warp_grid(k.float(), pose.float(), depth.detach().float(), h, w)
         if method == "gram":
             corr = _correlation_gram(ref, other, grid, max_bytes)
         else:

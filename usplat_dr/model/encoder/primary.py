@@ -178,12 +178,15 @@ class PrimaryNetwork(nn.Module):
 
     def gaussians_from(self, depth: DepthOutputs, extrinsics: Tensor, intrinsics: Tensor,
                        image_shape: tuple[int, int], global_step: int = 0) -> Gaussians:
-        """The Gaussian adapter on the depth predictor's outputs."""
+        """The Gaussian adapter on the depth predictor's outputs, in float32 whatever
+        autocast says (the Gaussians' geometry, and the rasteriser takes float32 only)."""
         e = self.opacity_exponent(global_step)
-        p = depth.densities
-        opacities = 0.5 * (1 - (1 - p) ** e + p ** (1 / e)) / self.cfg.gaussians_per_pixel
-        gaussians, _ = self.gaussian_adapter(extrinsics, intrinsics, depth.raw_gaussians,
-                                             depth.depths, opacities, image_shape)
+        with torch.autocast(extrinsics.device.type, enabled=False):
+            p = depth.densities.float()
+            opacities = 0.5 * (1 - (1 - p) ** e + p ** (1 / e)) / self.cfg.gaussians_per_pixel
+            gaussians, _ = self.gaussian_adapter(extrinsics, intrinsics,
+                                                 depth.raw_gaussians.float(),
+                                                 depth.depths.float(), opacities, image_shape)
         return gaussians
 
     def forward(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
