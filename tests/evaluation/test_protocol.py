@@ -54,6 +54,7 @@ def test_evaluate_follows_the_protocol_and_writes_files(tmp_path, device):
     assert summary["splits"]["standard"]["psnr"] == pytest.approx(
         sum(float(r["psnr"]) for r in rows) / 2, rel=1e-6)
     assert summary["splits"]["standard"]["lpips"].startswith("unavailable")
+    assert summary["precision"] == "float32" and summary["prune"] == "none"
     assert 0 <= summary["splits"]["standard"]["delta1"] <= 1
     # recompute one scene's PSNR independently from its saved render inputs
     from usplat_dr.data.dataset import dataset_from_section

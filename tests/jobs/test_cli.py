@@ -58,6 +58,8 @@ def test_render_demo_writes_images(tmp_path):
     (["bench", "--prunes", "all,nope"], "--prunes: unknown ['nope']"),
     (["bench", "--configs", "tiny:z"], "--configs: 'tiny:z' is not preset:variant"),
     (["eval", "--checkpoint", "c", "--data", "d", "--device", "tpu"], "invalid choice: 'tpu'"),
+    (["eval", "--checkpoint", "c", "--data", "d", "--precision", "fp16"],
+     "invalid choice: 'fp16'"),
     (["no-such-command"], "invalid choice: 'no-such-command'"),
 ])
 def test_cli_rejects_bad_arguments_as_usage_errors(argv, message, capsys):

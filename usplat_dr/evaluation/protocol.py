@@ -126,6 +126,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     summary.update(
         parameters=sum(p.numel() for p in model.parameters()),
         variant=model.cfg.variant, prune=prune.label() if prune is not None else "none",
+        precision=getattr(model, "inference_precision", "float32"),
         image_shape=list(dataset.get("image_shape", ())),
         time_per_scene_s=statistics.median(steady) if steady else None,
         peak_memory_gib=peak_memory_gib(device), device=str(device))
