@@ -88,3 +88,14 @@ def test_bad_inference_precision_names_the_setting(model):
             model(*scene(64), render=False)
     finally:
         model.inference_precision = "float32"
+
+
+def test_bfloat16_under_portable_numerics_warns(monkeypatch, caplog):
+    # The portable pins cap oneDNN at AVX2, which has no bfloat16 instructions: usplat eval
+    # says so rather than running 14x slower in silence.
+    from usplat_dr.jobs.evaluate import warn_slow_bfloat16
+
+    monkeypatch.setenv("USPLAT_PORTABLE", "1")
+    with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.evaluate"):
+        warn_slow_bfloat16()
+    assert "USPLAT_PORTABLE=0" in caplog.text

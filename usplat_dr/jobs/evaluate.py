@@ -3,6 +3,7 @@ JSON, renders)."""
 
 import argparse
 import json
+import logging
 
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
@@ -10,6 +11,7 @@ from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argu
 from usplat_dr.training.checkpoints import load_model
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
+log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,6 +37,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="outputs/eval")
 
 
+def warn_slow_bfloat16() -> None:
+    """bfloat16 pays on the CPU only with native bfloat16 instructions (AVX-512-BF16, AMX)
+    that oneDNN may use: the portable numerics cap oneDNN at AVX2, where the tiny model at
+    64x64 took 2.08 s per scene in bfloat16 against 0.15 s in float32 (0.07 s natively)."""
+    import torch
+
+    from usplat_dr import portable
+
+    if portable.enabled():
+        log.warning("--precision bfloat16 with portable numerics (USPLAT_PORTABLE=1) runs "
+                    "oneDNN's AVX2 code, which has no bfloat16 instructions: about 14x slower "
+                    "than float32. Run with USPLAT_PORTABLE=0 for the fast path.")
+    elif not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        log.warning("--precision bfloat16: this CPU has no bfloat16 instructions oneDNN can "
+                    "use; expect it to be slower than float32")
+
+
 def run(args: argparse.Namespace) -> int:
     indices = dict(item.split("=", 1) for item in args.index) if args.index else None
     if indices is None:
@@ -48,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)
     model, step = load_model(args.checkpoint, args.device, args.trust_checkpoint)
     model.inference_precision = args.precision
+    if args.precision == "bfloat16" and args.device == "cpu":
+        warn_slow_bfloat16()
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
                        prune=model.inference_prune if args.prune else None)

@@ -204,9 +204,11 @@ class UniqueSplat(nn.Module):
         self.inference_prune = DEFAULT_INFERENCE_PRUNE
         #: Inference precision of the networks when not training: ``"float32"`` (default) or
         #: ``"bfloat16"`` (torch autocast; the Gaussians' geometry, the cost volume's
-        #: sampling grid and rendering stay float32). On an AVX-512-BF16 CPU it takes the
-        #: paper preset's 256x256 forward from 3.3 to 1.9 s at one thread and moved the tiny
-        #: checkpoint's held-out PSNR by +0.013 dB (BENCHMARKS.md, "bfloat16 inference").
+        #: sampling grid and rendering stay float32). On an AVX-512-BF16 CPU with native
+        #: numerics (``USPLAT_PORTABLE=0``: the portable pins leave oneDNN without bfloat16
+        #: instructions, 14x slower) it takes the paper preset's 256x256 encoder from 3.25 to
+        #: 1.82 s at one thread and moved the tiny checkpoint's held-out PSNR by +0.013 dB
+        #: (BENCHMARKS.md, "bfloat16 inference").
         self.inference_precision = "float32"
         self.agnostic = self.specific = None
         if cfg.variant == "baseline":
