@@ -26,10 +26,10 @@ import tempfile
 import time
 from pathlib import Path
 
+import usplat_dr  # noqa: F401, I001  (chooses libLLVM before drjit is imported)
 import drjit as dr
 import torch
 
-import usplat_dr  # noqa: F401  (chooses libLLVM first)
 from usplat_dr.backend import module_for
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.pipeline import rasterize_drjit

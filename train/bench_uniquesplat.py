@@ -137,11 +137,11 @@ def main() -> None:
             runs = [run_child("times", [preset, size, configs], args.repeats,
                               f"{tmp}/t{i}.json", args.threads)
                     for i in range(args.processes)]
-            rss = {name: run_child("memory", [preset, size, list(cfg)], 0,
-                                   f"{tmp}/m.json")["rss_gib"] for name, cfg in configs.items()}
-        print(f"\n{preset} preset, {size}x{size}, 2 context + 3 targets, batch 1, {args.threads} thread(s); "
-              f"variants alternated run by run, best of {args.processes} processes (median of "
-              f"{args.repeats} runs each)")
+            rss = {name: run_child("memory", [preset, size, list(cfg)], 0, f"{tmp}/m.json",
+                                   args.threads)["rss_gib"] for name, cfg in configs.items()}
+        print(f"\n{preset} preset, {size}x{size}, 2 context + 3 targets, batch 1, "
+              f"{args.threads} thread(s); variants alternated run by run, best of "
+              f"{args.processes} processes (median of {args.repeats} runs each)")
 
         def best(name, key, what):
             return min(r[name][key][what] for r in runs)

@@ -115,6 +115,10 @@ def main(argv=None) -> int:
     p.add_argument("--job", nargs=2, metavar=("VARIANT", "SEED"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    names = [Path(d).resolve().name for d in (args.eval_data, *args.also_eval)]
+    if len(set(names)) != len(names):
+        p.error(f"--eval-data and --also-eval need distinct folder names (their results are "
+                f"kept by name: eval_<name>), got {names}")
     if "baseline" not in args.variants:
         p.error("--variants must include baseline (the control every variant is paired with)")
     out = Path(args.out)
@@ -165,12 +169,14 @@ def main(argv=None) -> int:
 def evaluate_again(args, out: Path, jobs, data: str, eval_name: str) -> None:
     """Evaluate every finished run's last checkpoint on another held-out set (one thread,
     in this process; runs already evaluated there are skipped)."""
+    import drjit as dr
     import torch
 
     from usplat_dr.evaluation import evaluate, synthetic_indices
     from usplat_dr.training.checkpoints import load_model
 
     torch.set_num_threads(1)
+    dr.set_thread_count(1)
     for variant, seed in jobs:
         run = out / run_name(variant, seed)
         if (run / eval_name / "per_scene.csv").is_file():
@@ -204,6 +210,7 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
         text += (f"## Equal wall time: (c) against (a) trained {args.wall_ratio:g}x the "
                  f"steps\n\n{table(wall_rows)}\n\n")
     return text + f"![](verdict{suffix}.png)\n\n"
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -95,10 +95,12 @@ def test_usplat_eval_defaults_to_the_checkpoints_image_shape_and_no_pruning(tmp_
     assert main([*common, "--out", str(tmp_path / "a")]) == 0
     a = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert a["image_shape"] == [32, 48] and a["prune"] == "none"
-    assert main([*common, "--image-shape", "16", "16", "--prune", "--out",
-                 str(tmp_path / "b")]) == 0
+    assert a["precision"] == "float32"
+    assert main([*common, "--image-shape", "16", "16", "--prune", "--precision", "bfloat16",
+                 "--out", str(tmp_path / "b")]) == 0
     b = json.loads((tmp_path / "b" / "summary.json").read_text())
     assert b["image_shape"] == [16, 16] and b["prune"] == model.inference_prune.label()
+    assert b["precision"] == "bfloat16"
 
 
 def test_keys_that_cannot_be_scored_are_counted_and_named(tmp_path):

@@ -49,9 +49,19 @@ def warn_slow_bfloat16() -> None:
         log.warning("--precision bfloat16 with portable numerics (USPLAT_PORTABLE=1) runs "
                     "oneDNN's AVX2 code, which has no bfloat16 instructions: about 14x slower "
                     "than float32. Run with USPLAT_PORTABLE=0 for the fast path.")
-    elif not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+    elif not _onednn_has_bfloat16(torch):
         log.warning("--precision bfloat16: this CPU has no bfloat16 instructions oneDNN can "
                     "use; expect it to be slower than float32")
+
+
+def _onednn_has_bfloat16(torch) -> bool:
+    """Whether oneDNN can use bfloat16 instructions here (a private torch op: False when it
+    is missing in this build)."""
+    try:
+        return bool(torch.backends.mkldnn.is_available()
+                    and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
 
 
 def run(args: argparse.Namespace) -> int:

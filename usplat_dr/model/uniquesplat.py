@@ -271,11 +271,14 @@ class UniqueSplat(nn.Module):
             return [(self._conv(s.name).weight, self._conv(s.name).bias) for s in self.specs]
         params = tuple(self.agnostic.parameters())
         key = tuple((id(p), p._version) for p in params)
-        if self.training or torch.is_grad_enabled():
-            self._cached_weights = None
-            return self.agnostic()
-        if self._cached_weights is None or self._cached_weights[0] != key:
-            self._cached_weights = (key, self.agnostic())
+        # W in float32 whatever autocast says (the cache must not keep a bfloat16 W for a
+        # later float32 forward; autocast casts it where a convolution uses it).
+        with torch.autocast(params[0].device.type, enabled=False):
+            if self.training or torch.is_grad_enabled():
+                self._cached_weights = None
+                return self.agnostic()
+            if self._cached_weights is None or self._cached_weights[0] != key:
+                self._cached_weights = (key, self.agnostic())
         return self._cached_weights[1]
 
     def train(self, mode: bool = True):
@@ -339,8 +342,8 @@ class UniqueSplat(nn.Module):
         # cost volume's estimate before refinement; unlike the final depths it is never
         # clamped to [near, far], so it keeps a gradient where the final depth saturates.
         aux["context_depths"] = depth_out.depths.view(b, nb, v, h, w, -1)[:, 0, ..., 0].float()
-        coarse = 1.0 / depth.disp_full.view(v, b, h, w).transpose(0, 1)
-        aux["context_coarse_depths"] = coarse.float()
+        coarse_disparity = depth.disp_full.float().view(v, b, h, w).transpose(0, 1)
+        aux["context_coarse_depths"] = 1.0 / coarse_disparity
         out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
                                 aux=aux)
         if render:

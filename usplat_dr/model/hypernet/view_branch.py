@@ -50,7 +50,8 @@ class ContextFeatures(nn.Module):
         for lateral, f in zip(self.lateral, self.resnet.features(images.flatten(0, 1))):
             y = lateral(f)
             if y.shape[-2:] != size:
-                y = F.interpolate(y, size=size, mode="bilinear", align_corners=False,
+                # float32: torch has no bfloat16 antialiased resize (bfloat16 inference)
+                y = F.interpolate(y.float(), size=size, mode="bilinear", align_corners=False,
                                   antialias=y.shape[-1] > size[1])
             fused = fused + y
         return fused.unflatten(0, (b, v))
