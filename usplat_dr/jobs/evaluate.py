@@ -5,6 +5,9 @@ import argparse
 import json
 import logging
 
+import torch
+
+from usplat_dr import portable
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
@@ -41,20 +44,16 @@ def warn_slow_bfloat16() -> None:
     """bfloat16 pays on the CPU only with native bfloat16 instructions (AVX-512-BF16, AMX)
     that oneDNN may use: the portable numerics cap oneDNN at AVX2, where the tiny model at
     64x64 took 2.08 s per scene in bfloat16 against 0.15 s in float32 (0.07 s natively)."""
-    import torch
-
-    from usplat_dr import portable
-
     if portable.enabled():
         log.warning("--precision bfloat16 with portable numerics (USPLAT_PORTABLE=1) runs "
                     "oneDNN's AVX2 code, which has no bfloat16 instructions: about 14x slower "
                     "than float32. Run with USPLAT_PORTABLE=0 for the fast path.")
-    elif not _onednn_has_bfloat16(torch):
+    elif not _onednn_has_bfloat16():
         log.warning("--precision bfloat16: this CPU has no bfloat16 instructions oneDNN can "
                     "use; expect it to be slower than float32")
 
 
-def _onednn_has_bfloat16(torch) -> bool:
+def _onednn_has_bfloat16() -> bool:
     """Whether oneDNN can use bfloat16 instructions here (a private torch op: False when it
     is missing in this build)."""
     try:
