@@ -42,10 +42,16 @@ def nan_mean(values) -> float:
     return float(a.mean()) if a.size else float("nan")
 
 
+def depth_scored_pixels(alpha: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """The pixels the depth metrics score: finite positive ground truth that the prediction
+    covers (alpha > 0.5). Training's target-view depth loss uses the same pixels."""
+    return torch.isfinite(gt) & (gt > 0) & (alpha > 0.5)
+
+
 def depth_metrics(pred_depth: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor) -> dict:
-    """AbsRel, RMSE and delta < 1.25 over pixels with finite ground truth that the prediction
-    covers (alpha > 0.5); the rasteriser's depth is alpha-weighted, so divide by alpha."""
-    mask = torch.isfinite(gt) & (gt > 0) & (alpha > 0.5)
+    """AbsRel, RMSE and delta < 1.25 over ``depth_scored_pixels``; the rasteriser's depth is
+    alpha-weighted, so divide by alpha."""
+    mask = depth_scored_pixels(alpha, gt)
     if mask.sum() == 0:
         return {"abs_rel": float("nan"), "rmse": float("nan"), "delta1": float("nan")}
     d = (pred_depth / alpha.clamp(min=1e-6))[mask].double()

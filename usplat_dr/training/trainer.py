@@ -38,6 +38,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import StepTracker
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.lpips import LPIPS
+from usplat_dr.evaluation.protocol import depth_scored_pixels
 from usplat_dr.evaluation.provenance import provenance
 from usplat_dr.geometry.cameras import pixel_centres
 from usplat_dr.io import torch_save
@@ -164,7 +165,7 @@ def target_depth_loss(depth: torch.Tensor, alpha: torch.Tensor,
     ``depth`` and ``alpha`` [B, N, H, W] are the rasteriser's alpha-weighted camera-space z and
     its opacity (gradients reach the Gaussians through both); ``true_z`` [B, N, H, W] the
     synthetic ground truth (+inf on a miss). Zero when no pixel qualifies."""
-    valid = torch.isfinite(true_z) & (true_z > 0) & (alpha.detach() > 0.5)
+    valid = depth_scored_pixels(alpha.detach(), true_z)
     if not valid.any():
         return depth.new_zeros(())
     # alpha > 0.5 on valid pixels; the clamp keeps log finite where a depth is exactly 0
