@@ -61,6 +61,8 @@ def run_one(args, variant: str, seed: int) -> dict:
         f"optimizer.hyper_lr_scale={args.hyper_lr_scale}", "threads=1", "train.progress=false",
         *([f"model.overrides.delta_init_std={args.delta_init_std}"]
           if model_variant == "full" and args.delta_init_std else []),
+        *([f"model.overrides.{o}" for o in args.full_override] if model_variant == "full"
+          else []),
         f"train.checkpoint_every={max(50, steps // 10)}", f"train.validate_every={steps}"])
     t0 = time.perf_counter()
     result = train(cfg, resume=True)
@@ -102,6 +104,10 @@ def main(argv=None) -> int:
     p.add_argument("--delta-init-std", type=float, default=0.0,
                    help="(c)'s H_s initialisation (model.overrides.delta_init_std; 0: Delta W "
                         "starts at exactly 0)")
+    p.add_argument("--full-override", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="fields of (c)'s model config, e.g. delta_rank=16 "
+                        "'specific_layers=[to_gaussians.0,to_gaussians.2]' "
+                        "(model.overrides.KEY=VALUE; only the full variant's runs)")
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--out", default="outputs/verdict")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
@@ -119,6 +125,9 @@ def main(argv=None) -> int:
     if len(set(names)) != len(names):
         p.error(f"--eval-data and --also-eval need distinct folder names (their results are "
                 f"kept by name: eval_<name>), got {names}")
+    bad = [o for o in args.full_override if "=" not in o]
+    if bad:
+        p.error(f"--full-override takes KEY=VALUE pairs (fields of UniqueSplatCfg), got {bad}")
     if "baseline" not in args.variants:
         p.error("--variants must include baseline (the control every variant is paired with)")
     out = Path(args.out)

@@ -99,7 +99,7 @@ def test_usplat_eval_defaults_to_the_checkpoints_image_shape_and_no_pruning(tmp_
     assert main([*common, "--image-shape", "16", "16", "--prune", "--precision", "bfloat16",
                  "--out", str(tmp_path / "b")]) == 0
     b = json.loads((tmp_path / "b" / "summary.json").read_text())
-    assert b["image_shape"] == [16, 16] and b["prune"] == model.inference_prune.label()
+    assert b["image_shape"] == [16, 16] and b["prune"] == "cull+merge1px"
     assert b["precision"] == "bfloat16"
 
 

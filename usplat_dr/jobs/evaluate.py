@@ -11,6 +11,7 @@ from usplat_dr import portable
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
+from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import load_model
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
@@ -27,9 +28,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_image_shape_argument(p)
     add_trust_argument(p)
     p.add_argument("--prune", action="store_true",
-                   help="prune the Gaussians per target view before rendering, as the model "
-                   "does at inference (exact culling + merging near-duplicates): faster, "
-                   "within 0.05 dB; off by default so the numbers come from the exact model")
+                   help="prune the Gaussians per target view before rendering (exact culling "
+                   "+ merging near-duplicates, within 0.05 dB): fewer Gaussians, but on CPU "
+                   "slower at every size measured (BENCHMARKS.md, \"Pruning that pays\"); "
+                   "off by default")
     p.add_argument("--precision", default="float32", choices=["float32", "bfloat16"],
                    help="the networks' inference precision (bfloat16: torch autocast, faster "
                         "on CPUs with AVX-512-BF16 or AMX; geometry and rendering stay "
@@ -80,6 +82,6 @@ def run(args: argparse.Namespace) -> int:
         warn_slow_bfloat16()
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
-                       prune=model.inference_prune if args.prune else None)
+                       prune=PruneSettings(merge=True) if args.prune else None)
     print(json.dumps(summary, indent=1))
     return 0

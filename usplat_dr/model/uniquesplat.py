@@ -42,12 +42,13 @@ HEADS = ("to_gaussians", "to_disparity")
 #: Layers that can take generated weights: the convolutions of the two heads.
 INJECTABLE = tuple(f"{h}.{i}" for h in HEADS for i in (0, 2))
 
-#: Inference default: exact culling and merging near-duplicates within a target pixel, the
-#: settings that lose less than 0.05 dB on every configuration of `usplat bench`
-#: (BENCHMARKS.md, "Speed against accuracy": worst -0.005 dB, 16% fewer Gaussians; merging
-#: in 2-pixel cells loses up to 0.3 dB and is off). ``model.inference_prune = None`` renders
-#: everything.
-DEFAULT_INFERENCE_PRUNE = PruneSettings(merge=True)
+#: Inference default: no pruning. Pruning pays nowhere on CPU (train/bench_prune.py, BENCHMARKS.md
+#: "Pruning that pays"): the rasteriser's binning already skips what culling drops (no
+#: (tile, Gaussian) pairs), so on the tiny checkpoint's Gaussians it saves the rasteriser 0-10 %
+#: while the pruning itself costs 0.75-1.5x the render (64x64 to 256x256, one thread). Set
+#: ``model.inference_prune = PruneSettings(...)`` for fewer Gaussians per view (culling is
+#: exact; culling + merging within a pixel lost <= 0.005 dB in ``usplat bench``).
+DEFAULT_INFERENCE_PRUNE: PruneSettings | None = None
 
 # Paper sec. "Results reported": the full model has 38.1M parameters.
 PAPER_PARAMETERS = 38.1e6
