@@ -17,7 +17,7 @@ PACKAGE = ROOT / "usplat_dr"
 #: import modules of its own part and of lower layers. ``model`` and ``data`` share a layer
 #: but may not import each other (the model never sees the dataset, the data never the model).
 LAYERS = {
-    "_llvm": 0, "portable": 0,
+    "_llvm": 0, "_openmp": 0, "portable": 0,
     "": 1, "backend": 1, "config": 1, "io": 1,  # "": ``usplat_dr`` itself (the libLLVM choice)
     "geometry": 2,
     "render": 3,
