@@ -76,6 +76,9 @@ def run(args: argparse.Namespace | None = None) -> int:
         import torch  # may be missing or broken: reported, not raised
 
         print(f"  threads: {torch.get_num_threads()}")
+        # usplat_dr/_openmp.py: set on import, before torch loads
+        print(f"  GOMP_SPINCOUNT = {os.environ.get('GOMP_SPINCOUNT', '(unset)')}, "
+              f"OMP_WAIT_POLICY = {os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
         cuda = torch.cuda.is_available()
         print(f"  CUDA: {torch.cuda.get_device_name(0) if cuda else 'no GPU'}")
         if cuda and "cuda" not in backends:
