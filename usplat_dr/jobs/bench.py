@@ -58,8 +58,9 @@ PRUNES: dict[str, PruneSettings | None] = {
     "keep50%": PruneSettings(keep_fraction=0.5),
     "keep25%": PruneSettings(keep_fraction=0.25),
 }
-#: The decision rules (BENCHMARKS.md, "Speed against accuracy: `usplat bench`"): pruning on
-#: by default where it costs < 0.05 dB; the demo's preset is the smallest configuration within
+#: The decision rules (BENCHMARKS.md, "Speed against accuracy: `usplat bench`"): a pruning
+#: setting is safe where it costs < 0.05 dB (on by default only if it also saves time, which on
+#: CPU none does: "Pruning that pays"); the demo's preset is the smallest configuration within
 #: 0.3 dB of the best.
 SAFE_PRUNE_DB = 0.05
 PRESET_WITHIN_DB = 0.3

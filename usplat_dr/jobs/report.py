@@ -176,8 +176,10 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
               f"{b.size}x{b.size} and a smaller render size.", "",
               "![speed against accuracy](bench_demo/bench.png)", "",
               (out / "bench_demo" / "bench.md").read_text().rstrip(), "",
-              "Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; on "
-              "by default where it costs less than 0.05 dB):", "",
+              "Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; "
+              "safe: it costs less than 0.05 dB). Off by default at inference: on CPU it costs "
+              "more time than it saves at every size measured (BENCHMARKS.md, \"Pruning that "
+              "pays\").", "",
               "| pruning | worst PSNR change | kept | safe |", "|---|---|---|---|"]
     for name, p in sorted(bench["pruning"].items()):
         lines.append(f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | "
