@@ -44,8 +44,8 @@ INJECTABLE = tuple(f"{h}.{i}" for h in HEADS for i in (0, 2))
 
 #: Inference default: no pruning. Pruning pays nowhere on CPU (train/bench_prune.py, BENCHMARKS.md
 #: "Pruning that pays"): the rasteriser's binning already skips what culling drops (no
-#: (tile, Gaussian) pairs), so on the tiny checkpoint's Gaussians it saves the rasteriser 0-10 %
-#: while the pruning itself costs 0.75-1.5x the render (64x64 to 256x256, one thread). Set
+#: (tile, Gaussian) pairs), so on the tiny checkpoint's Gaussians it saves the rasteriser 0-13 %
+#: while the pruning itself costs 0.65-1.6x the render (64x64 to 256x256, one thread). Set
 #: ``model.inference_prune = PruneSettings(...)`` for fewer Gaussians per view (culling is
 #: exact; culling + merging within a pixel lost <= 0.005 dB in ``usplat bench``).
 DEFAULT_INFERENCE_PRUNE: PruneSettings | None = None
