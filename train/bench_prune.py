@@ -65,10 +65,13 @@ def scenes(data: str, split: str, count: int):
 
 
 def psnr(a, b) -> float:
-    import torch
+    """PSNR of two [N, 3, H, W] batches pooled as one image (inf where they are identical)."""
+    from usplat_dr.evaluation.metrics import psnr as image_psnr
 
-    mse = torch.mean((a.clamp(0, 1) - b.clamp(0, 1)) ** 2).item()
-    return float("inf") if mse == 0 else -10 * torch.log10(torch.tensor(mse)).item()
+    def pooled(x):  # [3, N H, W]
+        return x.transpose(0, 1).flatten(1, 2)
+
+    return image_psnr(pooled(a), pooled(b)).item()
 
 
 def measure(model, batches, size: int, grid: dict) -> dict:
