@@ -37,10 +37,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def settings_grid():
+    """``usplat bench``'s named settings (``jobs.bench.PRUNES``), and merging without culling."""
+    from usplat_dr.jobs.bench import PRUNES
     from usplat_dr.render.prune import PruneSettings
 
-    return {"none": None, "cull": PruneSettings(),
-            "cull+merge1px": PruneSettings(merge=True),
+    return {"none": PRUNES["all"], "cull": PRUNES["cull"],
+            "cull+merge1px": PRUNES["cull+merge1px"],
             "merge1px": PruneSettings(cull=False, merge=True)}
 
 
