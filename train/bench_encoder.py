@@ -6,16 +6,19 @@ Each configuration runs in its own process (so its peak RSS is its own), interle
 median wall time, process CPU time per forward and peak RSS. Baseline, measured in the same
 run: our network with the reference's plane sweep (``cost_volume_method="warp"`` with all 128
 candidates warped at once, i.e. the full warped feature volume the official code builds).
-The last configuration is the default one under bfloat16 autocast (the model's
-``inference_precision = "bfloat16"``).
+Then the default one under bfloat16 autocast (the model's ``inference_precision =
+"bfloat16"``), the default one under other allocator settings (environment variables), and,
+with ``--previous DIR``, the default one with the code of an earlier checkout (ratios against
+the previous code in the same run).
 The official code's numbers on another 2-core machine (docs/mvsplat_notes.md sec. 2) are printed
 for reference: 4.9 s, 1.7 GiB.
 
-    python train/bench_encoder.py [--rounds 2] [--repeats 3] [--size 256]
+    python train/bench_encoder.py [--rounds 2] [--repeats 3] [--size 256] [--previous DIR]
 """
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -27,6 +30,12 @@ CONFIGS = {
     "ours (default): gram": {},
     # bfloat16 autocast (UniqueSplat.inference_precision = "bfloat16"; not a config field)
     "ours: gram, bfloat16 autocast": {"_precision": "bfloat16"},
+    # glibc/torch allocator settings (environment of the measuring process, not a config
+    # field): torch's 2 MiB-aligned, huge-page-advised allocations of >= 2 MiB, and glibc's
+    # mmap threshold fixed at 16 MiB (the default moves up to 32 MiB and then keeps every
+    # smaller tensor in a heap that fragments)
+    "ours: gram, THP + 16 MiB mmap threshold": {
+        "_env": {"THP_MEM_ALLOC_ENABLE": "1", "MALLOC_MMAP_THRESHOLD_": str(16 * 2**20)}},
 }
 
 
@@ -37,10 +46,12 @@ def child(cfg: dict, size: int, repeats: int, out: str, threads: int) -> None:
 
     import torch
 
+    import usplat_dr
     from usplat_dr.model import PrimaryNetwork, PrimaryNetworkCfg
 
     torch.set_num_threads(threads)
     precision = cfg.pop("_precision", "float32")
+    cfg.pop("_env", None)
     autocast = (torch.autocast("cpu", dtype=torch.bfloat16) if precision == "bfloat16"
                 else contextlib.nullcontext())
     torch.manual_seed(0)
@@ -51,6 +62,8 @@ def child(cfg: dict, size: int, repeats: int, out: str, threads: int) -> None:
     x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
     args = (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2))
     walls, cpus = [], []
+    # (each forward runs while the previous one's Gaussians are still held, as in an
+    # evaluation loop: ~60 MiB at 256x256)
     with torch.inference_mode(), autocast:
         g = net(*args)
         for _ in range(repeats):
@@ -61,7 +74,8 @@ def child(cfg: dict, size: int, repeats: int, out: str, threads: int) -> None:
     torch.save(g.means, out + ".means.pt")
     with open(out, "w") as f:
         json.dump({"wall": statistics.median(walls), "cpu": statistics.median(cpus),
-                   "rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}, f)
+                   "rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+                   "package": os.path.dirname(usplat_dr.__file__)}, f)
 
 
 def main() -> None:
@@ -70,6 +84,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--threads", type=int, default=2, help="torch threads")
+    ap.add_argument("--previous", metavar="DIR",
+                    help="also measure the default configuration with the usplat_dr of DIR (a "
+                         "checkout of earlier code, e.g. `git worktree add DIR COMMIT`)")
     ap.add_argument("--child", help=argparse.SUPPRESS)  # internal: one measurement
     ap.add_argument("--child-out", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -78,15 +95,27 @@ def main() -> None:
         return child(cfg, args.size, args.repeats, out, args.threads)
     import torch
 
-    results = {name: [] for name in CONFIGS}
+    configs = dict(CONFIGS)
+    if args.previous:
+        prev = os.path.abspath(args.previous)
+        if not os.path.isdir(os.path.join(prev, "usplat_dr")):
+            raise SystemExit(f"--previous {args.previous}: no usplat_dr package there; make one "
+                             f"with `git worktree add {args.previous} COMMIT`")
+        configs[f"previous code ({args.previous}): gram"] = {"_pythonpath": prev}
+    results = {name: [] for name in configs}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):
-            for i, (name, cfg) in enumerate(CONFIGS.items()):
+            for i, (name, cfg) in enumerate(configs.items()):
                 out = f"{tmp}/{i}.json"
+                cfg = dict(cfg)
+                env = {**os.environ, **cfg.get("_env", {})}
+                if "_pythonpath" in cfg:  # earlier code first on the path
+                    env["PYTHONPATH"] = os.pathsep.join(
+                        [cfg.pop("_pythonpath"), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
                 subprocess.run([sys.executable, __file__, "--size", str(args.size),
                                 "--repeats", str(args.repeats), "--threads", str(args.threads),
                                 "--child", json.dumps(cfg),
-                                "--child-out", out], check=True)
+                                "--child-out", out], check=True, env=env)
                 with open(out) as f:
                     results[name].append(json.load(f))
                 if r == 0:
@@ -102,7 +131,9 @@ def main() -> None:
             cpu = min(x["cpu"] for x in runs)
             rss = min(x["rss_gib"] for x in runs)
             diff = (runs[0]["means"] - ref_means).abs().max().item()
-            print(f"{name:32s} wall {wall:5.2f} s ({wall / base_wall:4.2f}x)  cpu {cpu:5.2f} s  "
+            if name.startswith("previous"):
+                print(f"  (the previous code imported from {runs[0]['package']})")
+            print(f"{name:40s} wall {wall:5.2f} s ({wall / base_wall:4.2f}x)  cpu {cpu:5.2f} s  "
                   f"peak RSS {rss:4.2f} GiB ({rss / base_rss:4.2f}x)  "
                   f"max |means - baseline| {diff:.2g}")
         print("official MVSplat code (docs/mvsplat_notes.md sec. 2, another 2-core machine): "

@@ -120,7 +120,7 @@ def plane_sweep_correlation(features: Float[Tensor, "b v c h w"],
                             extrinsics: Float[Tensor, "b v 4 4"],
                             disparities: Float[Tensor, "vb d"],
                             method: str = "gram", chunk: int = 16,
-                            max_bytes: int = 64 * 2**20) -> Float[Tensor, "vb d h w"]:
+                            max_bytes: int = 16 * 2**20) -> Float[Tensor, "vb d h w"]:
     """Mean over the other views of <f_ref, warp(f_other, depth)> / sqrt(C) per candidate, in
     (v b) order. ``method="gram"`` (default) from pixel-pair dot products, ``"warp"`` by
     warping ``chunk`` candidates at a time as the reference does; both agree to float32

@@ -31,10 +31,59 @@ class DepthOutputs:
     pdf_max: Tensor
     disparity_candidates: Tensor
     raw_to_disparity: Tensor | None
-    features_fullres: Tensor  # upsampled features before proj_feature [VB, C, H, W]
-    refine_out: Tensor  # input of the heads [VB, 32, H, W]
-    head_input: Tensor  # input of to_gaussians [VB, 32 + 3 + C, H, W], channels-last
+    # The next three are None after ``DepthPredictorMultiView.drop_intermediates``.
+    features_fullres: Tensor | None  # upsampled features before proj_feature [VB, C, H, W]
+    refine_out: Tensor | None  # input of the heads [VB, 32, H, W]
+    head_input: Tensor | None  # input of to_gaussians [VB, 32 + 3 + C, H, W], channels-last
     disp_full: Tensor  # [VB, 1, H, W]
+
+
+def cat_channels_last(parts: tuple[Tensor, ...]) -> Tensor:
+    """``torch.cat(parts, 1).contiguous(memory_format=torch.channels_last)`` without the
+    channels-first concatenation: the parts are copied into a channels-last tensor."""
+    n, _, h, w = parts[0].shape
+    dtype = parts[0].dtype
+    for p in parts[1:]:  # torch.cat's type promotion
+        dtype = torch.promote_types(dtype, p.dtype)
+    out = torch.empty((n, sum(p.shape[1] for p in parts), h, w), dtype=dtype,
+                      device=parts[0].device, memory_format=torch.channels_last)
+    c0 = 0
+    for p in parts:
+        out[:, c0:c0 + p.shape[1]] = p
+        c0 += p.shape[1]
+    return out
+
+
+def lean_sequential(seq: nn.Sequential, x: Tensor) -> Tensor:
+    """``seq(x)`` for use without autograd, with each GELU after the first layer applied in
+    place on its input (an intermediate of this call): the same numbers, one full-size
+    activation fewer at a time."""
+    for i, layer in enumerate(seq):
+        if i and type(layer) is nn.GELU:
+            x = torch.ops.aten.gelu_(x, approximate=layer.approximate)
+        else:
+            x = layer(x)
+    return x
+
+
+def lean_head(seq: nn.Sequential, x: Tensor) -> Tensor:
+    """``seq(x)`` for use without autograd, one batch entry at a time through
+    ``lean_sequential``, into a channels-last output like the batched call's: a head's
+    hidden layer (168 channels at full resolution for ``to_gaussians``, 84 MiB per view at
+    256x256) is the largest activation of the network. The output has the memory format
+    of the entries' outputs (channels-last for a channels-last input)."""
+    if x.shape[0] == 1:
+        return lean_sequential(seq, x)
+    out = None
+    for i in range(x.shape[0]):
+        y = lean_sequential(seq, x[i:i + 1])
+        if out is None:
+            fmt = (torch.contiguous_format if y.is_contiguous() else torch.channels_last)
+            out = torch.empty((x.shape[0], *y.shape[1:]), dtype=y.dtype, device=y.device,
+                              memory_format=fmt)
+        out[i:i + 1] = y
+        del y
+    return out
 
 
 class DepthPredictorMultiView(nn.Module):
@@ -113,19 +162,38 @@ class DepthPredictorMultiView(nn.Module):
         disp_full = F.interpolate(coarse, scale_factor=up, mode="bilinear", align_corners=True)
 
         # ---- Depth refinement ----
-        features_full = self.upsampler(torch.cat((feat, cnn), dim=1))
-        proj = self.proj_feature(features_full)
-        if cfg.use_depth_refine:
-            refine_out = self.refine_unet(torch.cat((rgb, proj, disp_full, pdf_max_full), 1))
-        else:  # ablation: the heads see the projected features directly
-            refine_out = proj
+        # Without autograd ("lean"), full-resolution tensors are released as soon as they
+        # are used, and the upsampled features are computed again for the heads (a bilinear
+        # upsampling and a GELU, ~1% of the forward) instead of being kept through the
+        # refinement U-Net: at 2x256x256, 64 MiB less at the peak. Same numbers either way.
+        lean = not torch.is_grad_enabled()
+        low = self.upsampler[0](torch.cat((feat, cnn), dim=1))
+
+        def upsample(low):  # the upsampler's remaining layers (Upsample, GELU)
+            return (lean_sequential(self.upsampler[1:], low) if lean
+                    else self.upsampler[2](self.upsampler[1](low)))
+
+        features_full = upsample(low)
+        refine_out = self.proj_feature(features_full)
+        if lean:
+            features_full = None
+        if cfg.use_depth_refine:  # (else, the ablation: the heads see the projection)
+            refine_out = self.refine_unet(
+                torch.cat((rgb, refine_out, disp_full, pdf_max_full), 1))
+        if features_full is None:
+            features_full = upsample(low)
 
         # ---- Heads ----
         # channels_last: ~25% faster convolutions on CPU here, and it is the [.., H*W, C]
         # layout the Gaussian adapter reads anyway.
-        # (One expression, so the channels-first concatenation is freed before the convs run.)
-        head_input = (torch.cat((refine_out, rgb, features_full), dim=1)
-                      .contiguous(memory_format=torch.channels_last))
+        parts = (refine_out, rgb, features_full)
+        if lean:  # written in place: no channels-first concatenation beside it
+            head_input = cat_channels_last(parts)
+        else:  # (one expression: the channels-first concatenation is freed at once)
+            head_input = torch.cat(parts, dim=1).contiguous(memory_format=torch.channels_last)
+        del parts
+        # The full-resolution features live on as a view of the head input.
+        features_full = head_input[:, refine_out.shape[1] + rgb.shape[1]:]
         out = DepthOutputs(
             depths=None, densities=None, raw_gaussians=None, cost_volume=cost, pdf=pdf,
             coarse_disparity=coarse, pdf_max=pdf_max, disparity_candidates=disps,
@@ -133,10 +201,22 @@ class DepthPredictorMultiView(nn.Module):
             head_input=head_input, disp_full=disp_full)
         if not run_heads:
             return out
-        out.raw_gaussians = self.gaussians_layout(self.to_gaussians(head_input), v, b)
-        out.raw_to_disparity = self.to_disparity(refine_out)
+        out.raw_gaussians = self.gaussians_layout(self.gaussian_head(head_input), v, b)
+        out.raw_to_disparity = (self.to_disparity(refine_out) if torch.is_grad_enabled()
+                                else lean_head(self.to_disparity, refine_out))
         out.depths, out.densities = self.depths_from(out.raw_to_disparity, disp_full, near, far)
         return out
+
+    def gaussian_head(self, head_input: Tensor) -> Tensor:
+        """``to_gaussians`` on the head input; without autograd through ``lean_head``."""
+        if torch.is_grad_enabled():
+            return self.to_gaussians(head_input)
+        return lean_head(self.to_gaussians, head_input)
+
+    def drop_intermediates(self, out: DepthOutputs) -> None:
+        """Release the full-resolution intermediates of ``out`` that the Gaussian adapter
+        does not read (head input, features, refinement output: ~160 MiB at 2x256x256)."""
+        out.head_input = out.features_fullres = out.refine_out = None
 
     @staticmethod
     def gaussians_layout(raw: Tensor, v: int, b: int) -> Tensor:
