@@ -77,39 +77,47 @@ def _correlation_warp(ref: Tensor, other: Tensor, grid: Tensor, chunk: int) -> T
     return torch.cat(parts, dim=1)
 
 
+def _bilinear_corners(grid: Tensor, h: int, w: int) -> tuple[list[Tensor], list[Tensor]]:
+    """The 4 bilinear corners of ``grid``'s points (align_corners=True normalisation) as flat
+    pixel indices, and their weights (0 outside the image: zero padding), each [N, D, P]."""
+    # normalised -> pixel coordinates; clamp far-off points (their corners are all outside
+    # anyway) so floor() stays in integer range.
+    x = ((grid[..., 0] + 1) * (w - 1) / 2).clamp(-2, w + 1)  # [N, D, P]
+    y = ((grid[..., 1] + 1) * (h - 1) / 2).clamp(-2, h + 1)
+    x0, y0 = x.floor(), y.floor()
+    fx, fy = x - x0, y - y0
+    corners, weights = [], []
+    for dy, dx, wgt in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)),
+                        (1, 0, (1 - fx) * fy), (1, 1, fx * fy)):
+        xi, yi = x0 + dx, y0 + dy
+        inside = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
+        corners.append((yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)).long())
+        weights.append(torch.where(inside, wgt, torch.zeros_like(wgt)))
+    return corners, weights
+
+
 def _correlation_gram(ref: Tensor, other: Tensor, grid: Tensor, max_bytes: int) -> Tensor:
     """The same correlation from dot products: bilinear sampling is linear, so
     <f_ref(p), sum_k w_k f_other(q_k)> = sum_k w_k <f_ref(p), f_other(q_k)>. One matmul gives
     G[p, q] = <f_ref(p), f_other(q)> for all pixel pairs (rows in chunks of at most
     ``max_bytes``), then each candidate gathers its 4 bilinear corners from G. About 10x less
-    work than warping C channels D times; zero padding = corners outside the image weigh 0."""
+    work than warping C channels D times; zero padding = corners outside the image weigh 0.
+    The corners are computed chunk by chunk too (all at once they would take 12 bytes per
+    pixel, candidate and corner: 48 MiB at 2x64x64 features and 128 candidates)."""
     n, c, h, w = ref.shape
     d = grid.shape[1]
     hw = h * w
-    with torch.no_grad():
-        # align_corners=True: normalised -> pixel coordinates; clamp far-off points (their
-        # corners are all outside anyway) so floor() stays in integer range.
-        x = ((grid[..., 0] + 1) * (w - 1) / 2).clamp(-2, w + 1)  # [N, D, HW]
-        y = ((grid[..., 1] + 1) * (h - 1) / 2).clamp(-2, h + 1)
-        x0, y0 = x.floor(), y.floor()
-        fx, fy = x - x0, y - y0
-        corners, weights = [], []
-        for dy, dx, wgt in ((0, 0, (1 - fx) * (1 - fy)), (0, 1, fx * (1 - fy)),
-                            (1, 0, (1 - fx) * fy), (1, 1, fx * fy)):
-            xi, yi = x0 + dx, y0 + dy
-            inside = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
-            corners.append((yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)).long())
-            weights.append(torch.where(inside, wgt, torch.zeros_like(wgt)))
     ref_t = ref.reshape(n, c, hw).transpose(1, 2)  # [N, HW, C]
     other_f = other.reshape(n, c, hw)
     rows = max(1, min(hw, max_bytes // (4 * hw * max(n, 1))))
     out = []
     for p0 in range(0, hw, rows):
+        with torch.no_grad():
+            corners, weights = _bilinear_corners(grid[:, :, p0:p0 + rows], h, w)
         gram = torch.bmm(ref_t[:, p0:p0 + rows], other_f)  # [N, P, HW]
         acc = None
         for idx, wgt in zip(corners, weights):
-            i = idx[:, :, p0:p0 + rows].transpose(1, 2)  # [N, P, D]
-            term = torch.gather(gram, 2, i) * wgt[:, :, p0:p0 + rows].transpose(1, 2)
+            term = torch.gather(gram, 2, idx.transpose(1, 2)) * wgt.transpose(1, 2)  # [N, P, D]
             acc = term if acc is None else acc + term
         out.append(acc)
     return torch.cat(out, dim=1).transpose(1, 2).reshape(n, d, h, w)
@@ -120,7 +128,7 @@ def plane_sweep_correlation(features: Float[Tensor, "b v c h w"],
                             extrinsics: Float[Tensor, "b v 4 4"],
                             disparities: Float[Tensor, "vb d"],
                             method: str = "gram", chunk: int = 16,
-                            max_bytes: int = 16 * 2**20) -> Float[Tensor, "vb d h w"]:
+                            max_bytes: int = 64 * 2**20) -> Float[Tensor, "vb d h w"]:
     """Mean over the other views of <f_ref, warp(f_other, depth)> / sqrt(C) per candidate, in
     (v b) order. ``method="gram"`` (default) from pixel-pair dot products, ``"warp"`` by
     warping ``chunk`` candidates at a time as the reference does; both agree to float32
