@@ -166,22 +166,21 @@ class DepthPredictorMultiView(nn.Module):
         # are used, and the upsampled features are computed again for the heads (a bilinear
         # upsampling and a GELU, ~1% of the forward) instead of being kept through the
         # refinement U-Net: at 2x256x256, 64 MiB less at the peak. Same numbers either way.
+        # (The lean path runs the upsampler's layers one by one: hooks on the upsampler
+        # itself fire only with autograd, hooks on its layers always.)
         lean = not torch.is_grad_enabled()
-        low = self.upsampler[0](torch.cat((feat, cnn), dim=1))
-
-        def upsample(low):  # the upsampler's remaining layers (Upsample, GELU)
-            return (lean_sequential(self.upsampler[1:], low) if lean
-                    else self.upsampler[2](self.upsampler[1](low)))
-
-        features_full = upsample(low)
-        refine_out = self.proj_feature(features_full)
         if lean:
+            low = self.upsampler[0](torch.cat((feat, cnn), dim=1))
+            refine_out = self.proj_feature(lean_sequential(self.upsampler[1:], low))
             features_full = None
+        else:
+            features_full = self.upsampler(torch.cat((feat, cnn), dim=1))
+            refine_out = self.proj_feature(features_full)
         if cfg.use_depth_refine:  # (else, the ablation: the heads see the projection)
             refine_out = self.refine_unet(
                 torch.cat((rgb, refine_out, disp_full, pdf_max_full), 1))
         if features_full is None:
-            features_full = upsample(low)
+            features_full = lean_sequential(self.upsampler[1:], low)
 
         # ---- Heads ----
         # channels_last: ~25% faster convolutions on CPU here, and it is the [.., H*W, C]
