@@ -60,7 +60,7 @@ def test_lean_depth_outputs_equal_the_autograd_ones(use_depth_refine):
     assert lean.features_fullres.data_ptr() > lean.head_input.data_ptr()
     assert lean.features_fullres.untyped_storage().data_ptr() == \
         lean.head_input.untyped_storage().data_ptr()
-    small.depth_predictor.drop_intermediates(lean)
+    lean.drop_intermediates()
     assert lean.head_input is None and lean.features_fullres is None and lean.refine_out is None
 
 

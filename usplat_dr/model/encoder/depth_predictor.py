@@ -31,11 +31,16 @@ class DepthOutputs:
     pdf_max: Tensor
     disparity_candidates: Tensor
     raw_to_disparity: Tensor | None
-    # The next three are None after ``DepthPredictorMultiView.drop_intermediates``.
+    # The next three are None after ``drop_intermediates``.
     features_fullres: Tensor | None  # upsampled features before proj_feature [VB, C, H, W]
     refine_out: Tensor | None  # input of the heads [VB, 32, H, W]
     head_input: Tensor | None  # input of to_gaussians [VB, 32 + 3 + C, H, W], channels-last
     disp_full: Tensor  # [VB, 1, H, W]
+
+    def drop_intermediates(self) -> None:
+        """Release the full-resolution intermediates the Gaussian adapter does not read
+        (head input, features, refinement output: ~160 MiB at 2x256x256)."""
+        self.head_input = self.features_fullres = self.refine_out = None
 
 
 def cat_channels_last(parts: tuple[Tensor, ...]) -> Tensor:
@@ -171,7 +176,11 @@ class DepthPredictorMultiView(nn.Module):
         lean = not torch.is_grad_enabled()
         if lean:
             low = self.upsampler[0](torch.cat((feat, cnn), dim=1))
-            refine_out = self.proj_feature(lean_sequential(self.upsampler[1:], low))
+
+            def upsampled():  # the upsampler's remaining layers (Upsample, GELU)
+                return lean_sequential(self.upsampler[1:], low)
+
+            refine_out = self.proj_feature(upsampled())
             features_full = None
         else:
             features_full = self.upsampler(torch.cat((feat, cnn), dim=1))
@@ -180,7 +189,7 @@ class DepthPredictorMultiView(nn.Module):
             refine_out = self.refine_unet(
                 torch.cat((rgb, refine_out, disp_full, pdf_max_full), 1))
         if features_full is None:
-            features_full = lean_sequential(self.upsampler[1:], low)
+            features_full = upsampled()
 
         # ---- Heads ----
         # channels_last: ~25% faster convolutions on CPU here, and it is the [.., H*W, C]
@@ -200,22 +209,12 @@ class DepthPredictorMultiView(nn.Module):
             head_input=head_input, disp_full=disp_full)
         if not run_heads:
             return out
-        out.raw_gaussians = self.gaussians_layout(self.gaussian_head(head_input), v, b)
-        out.raw_to_disparity = (self.to_disparity(refine_out) if torch.is_grad_enabled()
-                                else lean_head(self.to_disparity, refine_out))
+        # (without autograd through ``lean_head``: one view at a time, GELUs in place)
+        run = lean_head if lean else nn.Sequential.__call__
+        out.raw_gaussians = self.gaussians_layout(run(self.to_gaussians, head_input), v, b)
+        out.raw_to_disparity = run(self.to_disparity, refine_out)
         out.depths, out.densities = self.depths_from(out.raw_to_disparity, disp_full, near, far)
         return out
-
-    def gaussian_head(self, head_input: Tensor) -> Tensor:
-        """``to_gaussians`` on the head input; without autograd through ``lean_head``."""
-        if torch.is_grad_enabled():
-            return self.to_gaussians(head_input)
-        return lean_head(self.to_gaussians, head_input)
-
-    def drop_intermediates(self, out: DepthOutputs) -> None:
-        """Release the full-resolution intermediates of ``out`` that the Gaussian adapter
-        does not read (head input, features, refinement output: ~160 MiB at 2x256x256)."""
-        out.head_input = out.features_fullres = out.refine_out = None
 
     @staticmethod
     def gaussians_layout(raw: Tensor, v: int, b: int) -> Tensor:

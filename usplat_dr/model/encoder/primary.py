@@ -195,6 +195,6 @@ class PrimaryNetwork(nn.Module):
         """Gaussians of the context views: images in [0, 1], intrinsics normalised, extrinsics
         camera-to-world (OpenCV), near/far per view."""
         _, _, depth = self.encode(images, intrinsics, extrinsics, near, far)
-        self.depth_predictor.drop_intermediates(depth)
+        depth.drop_intermediates()
         return self.gaussians_from(depth, extrinsics, intrinsics, tuple(images.shape[-2:]),
                                    global_step)
