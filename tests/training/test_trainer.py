@@ -324,3 +324,31 @@ def test_lpips_joins_the_loss_at_its_step(synth_root, tmp_path):
     assert rows[1]["lpips"] == "" and float(rows[2]["lpips"]) > 0
     a, b = params(with_lpips.model), params(without.model)
     assert any(not torch.equal(a[k], b[k]) for k in a)  # the LPIPS gradient moved weights
+
+
+@pytest.mark.parametrize("setting", ["true", "false"])
+def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, monkeypatch,
+                                                        setting):
+    from usplat_dr.training import cores as _cores
+
+    seen = []
+
+    class Recording(_cores.CoreKeeper):
+        def start(self):
+            super().start()
+            seen.append(("start", len(self.procs)))
+            return self
+
+        def stop(self):
+            seen.append(("stop", len(self.procs)))
+            super().stop()
+
+    monkeypatch.setattr(_cores, "CoreKeeper", Recording)
+    trainer = Trainer(config(synth_root, tmp_path, 1, f"keep_cores_awake={setting}",
+                             "threads=1"))
+    trainer.fit()
+    if setting == "false":
+        assert seen == []
+    else:  # started with one spinner per core (on Linux), stopped when fit returned
+        cpus = len(_cores.available_cpus()) if sys.platform.startswith("linux") else 0
+        assert seen == [("start", cpus), ("stop", cpus)]

@@ -113,6 +113,9 @@ class RootCfg:
     device: str = "cpu"  # cuda: torch on the GPU and the rasteriser on Dr.Jit's CUDA backend
     output_dir: str = "outputs/train"
     threads: int | None = None  # torch and Dr.Jit threads per process (None: cores / ranks)
+    # idle-priority spinners that keep the cores from halting between the run's threads
+    # (usplat_dr.training.cores); None: on for a CPU run whose threads cover all of its cores
+    keep_cores_awake: bool | None = None
     name: str | None = None  # a label for the run
     model: ModelSection = field(default_factory=ModelSection)
     dataset: dict = field(default_factory=dict)  # checked by check_dataset_section

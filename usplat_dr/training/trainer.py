@@ -32,6 +32,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, default_collate
 from tqdm import tqdm
 
+from usplat_dr.training import cores as _cores
 from usplat_dr.config import ConfigError
 from usplat_dr.data.dataset import ChunkDataset, dataset_from_section
 from usplat_dr.data.types import model_inputs
@@ -407,6 +408,10 @@ class Trainer:
         if self.rank == 0 and tc.progress:
             bar = tqdm(total=steps, initial=self.step, desc="train", dynamic_ncols=True)
         start, t0, last = self.step, time.perf_counter(), {}
+        keeper = None
+        if _cores.wanted(self.config.keep_cores_awake, torch.get_num_threads(),
+                         self.device.type):
+            keeper = _cores.CoreKeeper().start()
         try:
             while self.step < steps:
                 self.step_tracker.set_step(self.step)
@@ -456,6 +461,8 @@ class Trainer:
                                 self._stop_signal, self.step)
                     break
         finally:
+            if keeper is not None:
+                keeper.stop()
             for s, h in old.items():
                 signal.signal(s, h)
             if bar is not None:

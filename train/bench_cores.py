@@ -1,0 +1,107 @@
+"""Training steps with the cores kept awake (``usplat_dr.training.cores.CoreKeeper``, what ``usplat
+train`` does by default when its threads cover every core) against without: each setting in
+its own processes, alternated round by round (a busy host slows both alike), the spinners
+running for the whole process as in a training run. Per process: the median of ``--steps``
+timed steps (after 3 warm-up steps) of the tiny preset at 64x64, 2 context + 4 targets, the
+shipped recipe, phase by phase as ``bench_training.py`` times them; then the median over rounds.
+Wall and process CPU time (the spinners' CPU time is not counted: it is time the job left idle).
+
+    python train/bench_cores.py --data outputs/big/train480 --threads 2 --rounds 4
+"""
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import usplat_dr  # noqa: F401  (libLLVM before drjit)
+
+PHASES = ["data", "forward", "loss", "backward", "norms+clip", "optimiser", "total"]
+
+
+def one_process(args) -> dict:
+    """This process's medians (ms) per variant, with or without the keeper."""
+    import logging
+
+    import torch
+    from bench_training import timed_step
+
+    from usplat_dr.config import load_config
+    from usplat_dr.training import Trainer
+    from usplat_dr.training.cores import CoreKeeper
+
+    logging.basicConfig(level=logging.ERROR)
+    logging.getLogger("usplat_dr").setLevel(logging.ERROR)
+    keeper = CoreKeeper().start() if args.awake == "on" else None
+    try:
+        out = {}
+        for variant in args.variants:
+            torch.manual_seed(0)
+            cfg = load_config(["synthetic_tiny_depth.yaml"], [
+                f"dataset.roots=[{args.data}]", "output_dir=/tmp/bench_cores",
+                f"model.variant={variant}", f"threads={args.threads}",
+                "train.progress=false"])
+            tr = Trainer(cfg)
+            rs = [timed_step(tr, tr.batches.next(), False) for _ in range(args.steps + 3)][3:]
+            out[variant] = {"wall": {ph: 1000 * statistics.median(r["wall"][ph] for r in rs)
+                                     for ph in PHASES},
+                            "cpu": 1000 * statistics.median(r["cpu"]["total"] for r in rs)}
+        out["spinners"] = len(keeper.procs) if keeper else 0
+        return out
+    finally:
+        if keeper is not None:
+            keeper.stop()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", required=True, help="a synthetic training set (64x64)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--steps", type=int, default=15, help="timed steps per process")
+    p.add_argument("--rounds", type=int, default=4)
+    p.add_argument("--variants", nargs="+", default=["baseline", "full"])
+    p.add_argument("--awake", choices=["on", "off"], help=argparse.SUPPRESS)  # one process
+    args = p.parse_args(argv)
+    if args.awake:
+        print(json.dumps(one_process(args)))
+        return 0
+    runs = {"off": [], "on": []}
+    for r in range(args.rounds):
+        for setting in runs:
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--data", args.data,
+                   "--threads", str(args.threads), "--steps", str(args.steps), "--variants",
+                   *args.variants, "--awake", setting]
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            if res.returncode:
+                sys.exit(f"round {r + 1}, cores awake {setting}: failed\n{res.stderr[-2000:]}")
+            runs[setting].append(json.loads(res.stdout.strip().splitlines()[-1]))
+            totals = ", ".join(f"{v} {runs[setting][-1][v]['wall']['total']:.1f} ms"
+                               for v in args.variants)
+            print(f"round {r + 1}/{args.rounds}, cores awake {setting}: {totals}", flush=True)
+    if runs["on"][0]["spinners"] == 0:
+        print("note: no spinner started here (not Linux, or SCHED_IDLE refused): both rows "
+              "ran without")
+    print(f"\nthreads={args.threads}, {args.rounds} rounds x {args.steps} steps per process; "
+          f"medians over rounds of per-process medians (ms); CPU = process CPU time")
+    print("| variant | cores | " + " | ".join(PHASES) + " | steps/s | CPU ms/step |")
+    print("|---|---|" + "---|" * (len(PHASES) + 2))
+    for variant in args.variants:
+        for setting, label in (("off", "idle halts"), ("on", "kept awake")):
+            med = {ph: statistics.median(x[variant]["wall"][ph] for x in runs[setting])
+                   for ph in PHASES}
+            cpu = statistics.median(x[variant]["cpu"] for x in runs[setting])
+            print(f"| {variant} | {label} | " + " | ".join(f"{med[ph]:.1f}" for ph in PHASES)
+                  + f" | {1000 / med['total']:.2f} | {cpu:.0f} |")
+    for variant in args.variants:
+        on, off = (statistics.median(x[variant]["wall"]["total"] for x in runs[s])
+                   for s in ("on", "off"))
+        per_round = " ".join(f"{a[variant]['wall']['total'] / b[variant]['wall']['total']:.2f}"
+                             for a, b in zip(runs["on"], runs["off"]))
+        print(f"{variant}: kept awake / idle halts = {on / off:.3f} (per round: {per_round})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
