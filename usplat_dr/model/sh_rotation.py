@@ -83,6 +83,17 @@ def wigner_d(rotation: Float[Tensor, "*batch 3 3"], degree: int) -> list[Tensor]
             for deg in range(degree + 1)]
 
 
+def sh_rotation_matrix(rotation: Float[Tensor, "*batch 3 3"], degree: int,
+                       dtype: torch.dtype = torch.float32) -> Float[Tensor, "*batch n n"]:
+    """The block-diagonal matrix diag(D_0(R), ..., D_degree(R)) that maps coefficients
+    (e3nn's order, n = (degree + 1)^2) to those of the function rotated by ``rotation``."""
+    n = (degree + 1) ** 2
+    full = rotation.new_zeros(*rotation.shape[:-2], n, n, dtype=dtype)
+    for deg, d in enumerate(wigner_d(rotation, degree)):
+        full[..., deg * deg:(deg + 1) ** 2, deg * deg:(deg + 1) ** 2] = d.to(dtype)
+    return full
+
+
 def rotate_sh(sh: Float[Tensor, "*batch n"], rotation: Float[Tensor, "*#batch 3 3"]
               ) -> Float[Tensor, "*batch n"]:
     """Coefficients of the function rotated by ``rotation`` (e3nn's convention: coefficient l^2
@@ -108,8 +119,6 @@ def rotate_sh(sh: Float[Tensor, "*batch n"], rotation: Float[Tensor, "*#batch 3 
         k -= 1
     lead = torch.broadcast_shapes(batch[:k], rb[:k])
     rot = rotation.reshape(*rb, 3, 3)[(...,) + (0,) * (len(rb) - k) + (slice(None),) * 2]
-    full = rot.new_zeros(*lead, n, n, dtype=sh.dtype)
-    for deg, d in enumerate(wigner_d(rot.expand(*lead, 3, 3), degree)):
-        full[..., deg * deg:(deg + 1) ** 2, deg * deg:(deg + 1) ** 2] = d.to(sh.dtype)
+    full = sh_rotation_matrix(rot.expand(*lead, 3, 3), degree, sh.dtype)
     rows = sh.expand(*lead, *batch[k:], n).reshape(*lead, -1, n)
     return (rows @ full.transpose(-1, -2)).reshape(*lead, *batch[k:], n)
