@@ -6,8 +6,9 @@ took 1-8 ms here, against microseconds on bare metal. A training step at two thr
 second core idle dozens of times: whenever work passes between torch's OpenMP pool and Dr.Jit's
 thread pool, and in the Python between operations. Each torch operation large enough to run
 in parallel then waits for its second thread: an element-wise product of 49,000 floats took
-1.5-4.5 ms right after a rasteriser call instead of 0.08 ms, and a whole step of the tiny
-preset 150-190 ms instead of 135-145 (BENCHMARKS.md, "Halting vCPUs").
+1.5-4.5 ms right after a rasteriser call instead of 0.08 ms. With the cores kept awake, a
+two-thread step of the tiny preset took 0.86-1.17x as long in 13 alternated rounds (median
+0.92x; BENCHMARKS.md, "Halting vCPUs").
 
 ``CoreKeeper`` starts one process per core that spins at the lowest scheduling priority
 (``SCHED_IDLE``): it runs only when nothing else wants that core, and the kernel preempts it at
@@ -71,11 +72,12 @@ class CoreKeeper:
     def __init__(self, cpus: list[int] | None = None):
         self.cpus = list(available_cpus() if cpus is None else cpus)
         self.procs: list[subprocess.Popen] = []
+        self._paused = False
 
     @property
     def active(self) -> bool:
         """True while spinners run (started, not paused, and allowed idle priority)."""
-        return bool(self.procs) and not getattr(self, "_paused", False)
+        return bool(self.procs) and not self._paused
 
     def start(self) -> "CoreKeeper":
         if self.procs or not sys.platform.startswith("linux"):
@@ -89,6 +91,7 @@ class CoreKeeper:
                 self.procs.append(p)
             else:
                 p.wait()
+                p.stdout.close()
         self._paused = False
         return self
 
