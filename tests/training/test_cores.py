@@ -1,6 +1,6 @@
 """``usplat_dr.training.cores``: when the cores are kept awake, and that the spinners run at idle
-priority on their own core, pause and continue, and never outlive the process that started
-them (not even a killed one)."""
+priority on their own core and never outlive the process that started them (not even a killed
+one)."""
 
 import os
 import signal
@@ -54,17 +54,11 @@ def test_spinners_are_idle_priority_pinned_and_stop():
     cpus = _cores.available_cpus()[:2]
     keeper = _cores.CoreKeeper(cpus).start()
     try:
-        assert len(keeper.procs) == len(cpus) and keeper.active
+        assert len(keeper.procs) == len(cpus)
         for proc, cpu in zip(keeper.procs, cpus):
             assert os.sched_getscheduler(proc.pid) == os.SCHED_IDLE
             assert os.sched_getaffinity(proc.pid) == {cpu}
-        keeper.pause()
-        time.sleep(0.2)
-        assert not keeper.active
-        assert {_state(p.pid) for p in keeper.procs} == {"T"}  # stopped
-        keeper.resume()
-        time.sleep(0.2)
-        assert keeper.active and "T" not in {_state(p.pid) for p in keeper.procs}
+            assert _state(proc.pid) in "RS"  # running (or between time slices)
         keeper.start()  # a second start adds nothing
         assert len(keeper.procs) == len(cpus)
     finally:

@@ -28,6 +28,7 @@ def sh_mask(d_sh: int) -> Tensor:
 class GaussianAdapter(nn.Module):
     def __init__(self, sh_degree: int = 4, scale_min: float = 0.5, scale_max: float = 15.0):
         super().__init__()
+        self.sh_degree = sh_degree
         self.d_sh = (sh_degree + 1) ** 2
         self.scale_min, self.scale_max = scale_min, scale_max
         self.register_buffer("sh_mask", sh_mask(self.d_sh), persistent=False)
@@ -82,7 +83,7 @@ class GaussianAdapter(nn.Module):
         # mask, the copy and the [d_sh, d_sh] products it replaced (at (c)'s 64x64 shapes 2.7
         # -> 0.5 ms; 256x256 at degree 4, 40 -> 25 ms).
         n = self.d_sh
-        rot = sh_rotation_matrix(extrinsics[..., :3, :3], int(n**0.5) - 1) * self.sh_mask
+        rot = sh_rotation_matrix(extrinsics[..., :3, :3], self.sh_degree) * self.sh_mask
         per_colour = rot.new_zeros(b, v, 3 * n, 3 * n)
         for c in range(3):  # rows: input coefficient j, columns: output i (D_ij mask_j)
             per_colour[..., c * n:(c + 1) * n, c * n:(c + 1) * n] = rot.transpose(-1, -2)

@@ -20,7 +20,6 @@ No third-party imports.
 """
 
 import os
-import signal
 import subprocess
 import sys
 
@@ -62,8 +61,7 @@ def wanted(setting: bool | None, threads: int, device: str) -> bool:
 
 class CoreKeeper:
     """Idle-priority spinners on ``cpus`` (default: every CPU this process may use) while
-    started. ``pause()`` / ``resume()`` stop and continue them (SIGSTOP / SIGCONT) without
-    restarting them, for benchmarks that interleave the two settings.
+    started.
 
         with CoreKeeper():
             trainer.fit()
@@ -71,13 +69,7 @@ class CoreKeeper:
 
     def __init__(self, cpus: list[int] | None = None):
         self.cpus = list(available_cpus() if cpus is None else cpus)
-        self.procs: list[subprocess.Popen] = []
-        self._paused = False
-
-    @property
-    def active(self) -> bool:
-        """True while spinners run (started, not paused, and allowed idle priority)."""
-        return bool(self.procs) and not self._paused
+        self.procs: list[subprocess.Popen] = []  # empty where SCHED_IDLE was refused
 
     def start(self) -> "CoreKeeper":
         if self.procs or not sys.platform.startswith("linux"):
@@ -92,22 +84,11 @@ class CoreKeeper:
             else:
                 p.wait()
                 p.stdout.close()
-        self._paused = False
         return self
-
-    def pause(self) -> None:
-        for p in self.procs:
-            p.send_signal(signal.SIGSTOP)
-        self._paused = True
-
-    def resume(self) -> None:
-        for p in self.procs:
-            p.send_signal(signal.SIGCONT)
-        self._paused = False
 
     def stop(self) -> None:
         for p in self.procs:
-            p.kill()  # SIGKILL also ends a stopped process
+            p.kill()
         for p in self.procs:
             p.wait()
             p.stdout.close()
