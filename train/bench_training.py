@@ -1,7 +1,8 @@
 """Training throughput: one training step of the tiny preset at 64x64 (2 context + 4 target
 views), variants (a) and (c), timed phase by phase (data to device, forward, loss, backward,
 gradient norms + clipping, optimiser), the current trainer against the previous one (Adam
-unfused, per-parameter float64 gradient norms) in the same process, interleaved step by step.
+unfused, per-parameter float64 gradient norms, then torch's clip_grad_norm_) in the same
+process, interleaved step by step.
 Wall and process CPU time; medians over steps.
 
     python train/bench_training.py --data outputs/big/train480 --threads 1 --steps 20
@@ -50,8 +51,11 @@ def timed_step(trainer, batch, old: bool) -> dict:
     w, p = mark("loss", w, p)
     loss.backward()
     w, p = mark("backward", w, p)
-    (old_group_grad_norms if old else type(trainer).group_grad_norms)(trainer)
-    torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), 0.5)
+    if old:
+        old_group_grad_norms(trainer)
+        torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), 0.5)
+    else:
+        trainer.clip_gradients()
     w, p = mark("norms+clip", w, p)
     trainer.optimizer.step()
     mark("optimiser", w, p)

@@ -352,3 +352,33 @@ def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, mo
     else:  # started with one spinner per core (on Linux), stopped when fit returned
         cpus = len(_cores.available_cpus()) if sys.platform.startswith("linux") else 0
         assert seen == [("start", cpus), ("stop", cpus)]
+
+
+@pytest.mark.parametrize("clip", [1e-3, 1e6])  # clipping scales the gradients / leaves them
+def test_clip_gradients_equals_group_norms_then_clip_grad_norm(synth_root, tmp_path, clip):
+    # The one-pass clip against the two calls it replaces, on the full variant (all four
+    # gradient groups): the same norms and the same clipped gradients, compared exactly
+    # (the same per-parameter norms, stacked and reduced in the same order).
+    trainer = Trainer(config(synth_root, tmp_path / "c", 1, "model.variant=full",
+                             "threads=1", f"optimizer.gradient_clip={clip}"))
+    batch = trainer.batches.next()
+    out = trainer.model(*model_inputs(batch, trainer.device), global_step=0)
+    trainer.loss(out, batch)[0].backward()
+    grads = {n: p.grad.clone() for n, p in trainer.model.named_parameters()
+             if p.grad is not None}
+    norm, parts = trainer.clip_gradients()
+    clipped = {n: p.grad.clone() for n, p in trainer.model.named_parameters()
+               if p.grad is not None}
+    for n, p in trainer.model.named_parameters():
+        if p.grad is not None:
+            p.grad.copy_(grads[n])
+    expected_parts = trainer.group_grad_norms()
+    expected = torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), clip)
+    assert set(parts) == set(Trainer.GRAD_GROUPS.values())
+    assert parts == expected_parts
+    assert torch.equal(norm, expected)
+    for n, p in trainer.model.named_parameters():
+        if p.grad is not None:
+            assert torch.equal(clipped[n], p.grad), n
+    scale = min(1.0, clip / (norm.item() + 1e-6))
+    assert any(not torch.equal(clipped[n], grads[n]) for n in grads) == (scale < 1)

@@ -320,6 +320,31 @@ class Trainer:
         norms = {k: torch.stack(torch._foreach_norm(g)).norm() for k, g in groups.items()}
         return dict(zip(norms, torch.stack(list(norms.values())).tolist())) if norms else {}
 
+    def clip_gradients(self) -> tuple[torch.Tensor, dict]:
+        """Clip the gradients to a global norm of ``optimizer.gradient_clip``; returns the
+        norm before clipping and ``group_grad_norms()``. The same numbers as those two calls
+        (``group_grad_norms`` then ``torch.nn.utils.clip_grad_norm_``), from one pass over the
+        per-parameter norms instead of two (~2 ms of a 64x64 tiny step at two threads)."""
+        max_norm = self.config.optimizer.gradient_clip
+        named = [(n, p.grad) for n, p in self.model.named_parameters() if p.grad is not None]
+        grads = [g.detach() for _, g in named]
+        if not grads or len({(g.device, g.dtype) for g in grads}) > 1:
+            parts = self.group_grad_norms()  # torch's own grouping by device and dtype
+            return torch.nn.utils.clip_grad_norm_(self.model.parameters(), max_norm), parts
+        norms = torch._foreach_norm(grads)
+        groups: dict[str, list[torch.Tensor]] = {}
+        for (name, _), n in zip(named, norms):
+            key = self.GRAD_GROUPS.get(name.split(".", 1)[0])
+            if key is not None:
+                groups.setdefault(key, []).append(n)
+        group_norms = [torch.stack(v).norm() for v in groups.values()]
+        parts = dict(zip(groups, torch.stack(group_norms).tolist())) if groups else {}
+        # clip_grad_norm_'s arithmetic, step for step: the norm of the stacked norms, then
+        # every gradient times min(1, max_norm / (norm + 1e-6))
+        total = torch.linalg.vector_norm(torch.stack(norms), 2.0)
+        torch._foreach_mul_(grads, torch.clamp(max_norm / (total + 1e-6), max=1.0))
+        return total, parts
+
     def train_step(self, batch: dict) -> dict | None:
         """One optimiser step on ``batch``: its statistics, or ``None`` when the loss or
         gradient is not finite (no update, BatchNorm statistics restored; the learning-rate
@@ -334,9 +359,8 @@ class Trainer:
         out = self.ddp(*args, global_step=self.step)
         loss, parts = self.loss(out, batch)
         loss.backward()
-        parts.update(self.group_grad_norms())
-        norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(),
-                                              self.config.optimizer.gradient_clip)
+        norm, grad_norms = self.clip_gradients()
+        parts.update(grad_norms)
         finite = torch.isfinite(loss) & torch.isfinite(norm)
         if self.world > 1:  # every rank takes the same decision
             flag = finite.float().to(self.device)
