@@ -320,6 +320,7 @@ class Trainer:
         norms = {k: torch.stack(torch._foreach_norm(g)).norm() for k, g in groups.items()}
         return dict(zip(norms, torch.stack(list(norms.values())).tolist())) if norms else {}
 
+    @torch.no_grad()
     def clip_gradients(self) -> tuple[torch.Tensor, dict]:
         """Clip the gradients to a global norm of ``optimizer.gradient_clip``; returns the
         norm before clipping and ``group_grad_norms()``. The same numbers as those two calls
@@ -327,7 +328,7 @@ class Trainer:
         per-parameter norms instead of two (~2 ms of a 64x64 tiny step at two threads)."""
         max_norm = self.config.optimizer.gradient_clip
         named = [(n, p.grad) for n, p in self.model.named_parameters() if p.grad is not None]
-        grads = [g.detach() for _, g in named]
+        grads = [g for _, g in named]
         if not grads or len({(g.device, g.dtype) for g in grads}) > 1:
             parts = self.group_grad_norms()  # torch's own grouping by device and dtype
             return torch.nn.utils.clip_grad_norm_(self.model.parameters(), max_norm), parts
