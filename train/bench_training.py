@@ -6,6 +6,10 @@ process, interleaved step by step.
 Wall and process CPU time; medians over steps.
 
     python train/bench_training.py --data outputs/big/train480 --threads 1 --steps 20
+
+``--clip N``: instead, the gradient norms and clipping alone, N times each on one step's
+gradients (restored before every call), alternating the two calls the trainer made before
+(``group_grad_norms`` then ``torch.nn.utils.clip_grad_norm_``) and ``Trainer.clip_gradients``.
 """
 
 import argparse
@@ -63,12 +67,40 @@ def timed_step(trainer, batch, old: bool) -> dict:
     return {"wall": t, "cpu": c}
 
 
+def clip_ab(trainer, batch, repeats: int) -> tuple[float, float]:
+    """Median ms of (group_grad_norms + clip_grad_norm_) and of clip_gradients."""
+    import torch
+
+    from usplat_dr.data.types import model_inputs
+
+    out = trainer.model(*model_inputs(batch, trainer.device), global_step=0)
+    trainer.loss(out, batch)[0].backward()
+    params = [p for p in trainer.model.parameters() if p.grad is not None]
+    saved = [p.grad.clone() for p in params]
+    clip = trainer.config.optimizer.gradient_clip
+    times: tuple[list, list] = ([], [])
+    for _ in range(repeats):
+        for i in (0, 1):
+            for p, g in zip(params, saved):
+                p.grad.copy_(g)
+            t0 = time.perf_counter()
+            if i == 0:
+                trainer.group_grad_norms()
+                torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), clip)
+            else:
+                trainer.clip_gradients()
+            times[i].append(time.perf_counter() - t0)
+    return tuple(1000 * statistics.median(t) for t in times)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="a synthetic training set (64x64)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
     p.add_argument("--variants", nargs="+", default=["baseline", "full"])
+    p.add_argument("--clip", type=int, default=0, metavar="N",
+                   help="time the gradient norms and clipping alone, N times each")
     args = p.parse_args(argv)
     import logging
 
@@ -79,14 +111,26 @@ def main(argv=None) -> int:
 
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("usplat_dr").setLevel(logging.ERROR)
+
+    def trainer(variant):
+        torch.manual_seed(0)
+        return Trainer(load_config(["synthetic_tiny_depth.yaml"], [
+            f"dataset.roots=[{args.data}]", "output_dir=/tmp/bench_training",
+            f"model.variant={variant}", f"threads={args.threads}", "train.progress=false"]))
+
+    if args.clip:
+        print(f"threads={args.threads}, medians of {args.clip} calls each (ms)")
+        print("| variant | group_grad_norms + clip_grad_norm_ | clip_gradients | ratio |")
+        print("|---|---|---|---|")
+        for variant in args.variants:
+            tr = trainer(variant)
+            two, one = clip_ab(tr, tr.batches.next(), args.clip)
+            print(f"| {variant} | {two:.2f} | {one:.2f} | {one / two:.2f} |")
+        return 0
     trainers = {}
     for variant in args.variants:
         for old in (True, False):
-            torch.manual_seed(0)
-            cfg = load_config(["synthetic_tiny_depth.yaml"], [
-                f"dataset.roots=[{args.data}]", "output_dir=/tmp/bench_training",
-                f"model.variant={variant}", f"threads={args.threads}", "train.progress=false"])
-            tr = Trainer(cfg)
+            tr = trainer(variant)
             if old:
                 tr.optimizer = torch.optim.Adam(tr.model.parameters(), lr=1e-3)
             trainers[(variant, old)] = tr
