@@ -1,0 +1,177 @@
+"""How much could a per-target Delta W give at best? An oracle bound for the verdict.
+
+(c) changes one layer per target view: the last Gaussian-head convolution gets W + Delta W,
+with Delta W = U V (rank r) and a bias change that the view-specific branch predicts from
+the context images and the target camera. Whatever that branch learns, its output is some
+Delta W. This script finds, for each held-out scene, the best Delta W there is for its
+target views by gradient descent on the target images themselves (which no model sees), on
+top of the trained (a):
+
+- ``shared``: one Delta W for all the scene's targets (scene-level adaptation, the same for
+  every view);
+- ``per-target``: one Delta W per target view (what view conditioning can express);
+- ``context``: one Delta W fitted to render the two context views themselves, then scored on
+  the targets: test-time adaptation with only what a test gives, which a network conditioned
+  on the context could in principle learn to predict.
+
+``shared`` and ``per-target`` are fitted to the images they are scored on, so they are upper
+bounds; ``per-target`` minus ``shared`` bounds what making Delta W depend on the view adds
+beyond adapting to the scene. At step 0 (Delta W = 0) each target's PSNR is (a)'s, which the
+script checks against a plain forward.
+
+    python train/oracle_delta.py --checkpoint checkpoints/tiny_baseline.pt \
+        --data outputs/big/test2000 --split standard --scenes 30 --steps 100 --out outputs/oracle
+
+One thread; writes ``<out>/per_target.csv`` and ``<out>/summary.json``.
+"""
+
+import argparse
+import csv
+import json
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import usplat_dr  # noqa: F401  (libLLVM before drjit)
+from usplat_dr import portable
+
+portable.enable()  # AVX2 code paths, as the usplat command (before torch is imported)
+
+
+MODES = ("shared", "per-target", "context")
+KEYS = ("a", "shared", "per_target", "context")  # per_target.csv's PSNR columns
+
+
+def fit_scene(model, batch, mode: str, rank: int, steps: int, lr: float, seed: int) -> dict:
+    """PSNR per target before and after fitting Delta W (``mode``: ``shared`` or
+    ``per-target`` on the target images, ``context`` shared on the context images)."""
+    import torch
+
+    from usplat_dr.data.types import model_inputs
+    from usplat_dr.evaluation.metrics import psnr
+    from usplat_dr.model.hypernet.hypernetwork import LayerDelta
+
+    args = model_inputs(batch, "cpu")
+    gt = batch["target"]["image"][0]
+    n = gt.shape[0]
+    fit_args, fit_gt = args, gt
+    if mode == "context":  # render the context views themselves: what a test has
+        fit_args, fit_gt = (*args[:5], *args[1:5]), args[0][0]
+    spec = next(s for s in model.specs if s.name in model.cfg.specific_layers)
+    o, i, k = spec.out_channels, spec.in_channels, spec.kernel_size
+    rows = n if mode == "per-target" else 1
+    g = torch.Generator().manual_seed(seed)
+    # U = 0 and the bias change = 0: the fit starts exactly at (a); V random so that U gets
+    # a gradient (the same start as (c)'s hypernetwork with delta_init_std > 0, reversed)
+    u = torch.zeros(rows, o, rank, requires_grad=True)
+    v = torch.randn(rows, rank, i, k, k, generator=g).requires_grad_(True)
+    bias = torch.zeros(rows, o, requires_grad=True)
+    weights = dict(zip(model.cfg.target_layers, model.agnostic_weights()))
+
+    def target_weights(images, intrinsics, extrinsics, target_intrinsics, *_):
+        m = target_intrinsics.shape[1]
+
+        def each(t):
+            return t if rows == m else t.expand(m, *t.shape[1:])
+        delta = LayerDelta(bias=each(bias), u=each(u), v=each(v) / math.sqrt(spec.fan_in))
+        return weights, {spec.name: delta}, {}
+
+    model._target_weights = target_weights
+    opt = torch.optim.Adam([u, v, bias], lr=lr)
+    with torch.no_grad():
+        before = psnr(model(*args).color[0], gt)
+    for _ in range(steps):
+        loss = (model(*fit_args).color[0] - fit_gt).square().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        after = psnr(model(*args).color[0], gt)
+    del model._target_weights
+    return {"before": before.tolist(), "after": after.tolist()}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", required=True, help="a trained (a), e.g. the shipped one")
+    p.add_argument("--data", required=True, help="a held-out synthetic set")
+    p.add_argument("--split", default="standard")
+    p.add_argument("--scenes", type=int, default=60)
+    p.add_argument("--rank", type=int, default=4, help="rank of Delta W (tiny (c): 4)")
+    p.add_argument("--steps", type=int, default=150, help="Adam steps per scene and mode")
+    p.add_argument("--lr", type=float, default=1e-2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+    import torch
+    from torch.utils.data import default_collate
+
+    from usplat_dr.data.dataset import dataset_from_section
+    from usplat_dr.data.types import model_inputs
+    from usplat_dr.evaluation import synthetic_indices
+    from usplat_dr.evaluation.metrics import psnr
+    from usplat_dr.training.checkpoints import load_model, training_image_shape
+
+    torch.set_num_threads(1)
+    model, _ = load_model(args.checkpoint)
+    if model.cfg.variant != "baseline":
+        p.error(f"--checkpoint: a trained (a) (variant baseline), got {model.cfg.variant!r}")
+    for q in model.parameters():
+        q.requires_grad_(False)
+    shape = training_image_shape(args.checkpoint) or (64, 64)
+    index = synthetic_indices(args.data, [args.split])[args.split]
+    ds = dataset_from_section({"name": "synth", "roots": [args.data],
+                               "image_shape": list(shape), "evaluation_index": index}, "test")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows, t0 = [], time.perf_counter()
+    for s, example in enumerate(ds):
+        if s == args.scenes:
+            break
+        batch = default_collate([example])
+        with torch.no_grad():  # (a) as `usplat eval` runs it: the step-0 check's reference
+            plain = psnr(model(*model_inputs(batch, "cpu")).color[0], batch["target"]["image"][0])
+        fits = {mode: fit_scene(model, batch, mode, args.rank, args.steps, args.lr,
+                                args.seed + s) for mode in MODES}
+        for j, ref in enumerate(plain.tolist()):
+            for mode, f in fits.items():
+                # Delta W = 0 renders (a): the same up to the rank-r path's float rounding
+                # (1e-3 dB: measured differences are ~1e-5 dB; a wrong path is off by dBs)
+                if abs(f["before"][j] - ref) > 1e-3:
+                    raise SystemExit(f"scene {example['scene']} target {j}: {mode} at step 0 "
+                                     f"{f['before'][j]:.4f} dB, (a) {ref:.4f} dB")
+            rows.append({"scene": example["scene"], "target": j, "a": ref,
+                         **{m.replace("-", "_"): f["after"][j] for m, f in fits.items()}})
+        mean = {k: statistics.mean(r[k] for r in rows) for k in KEYS}
+        print(f"[{s + 1}/{args.scenes}] {example['scene']}: "
+              + ", ".join(f"{k} {mean[k]:.3f}" for k in KEYS)
+              + f" dB ({time.perf_counter() - t0:.0f} s)", flush=True)
+    scenes = sorted({r["scene"] for r in rows})
+
+    def per_scene(key):
+        return [statistics.mean(r[key] for r in rows if r["scene"] == sc) for sc in scenes]
+
+    means = {k: per_scene(k) for k in KEYS}
+    summary = {
+        "checkpoint": args.checkpoint, "data": args.data, "split": args.split,
+        "scenes": len(scenes), "targets": len(rows), "rank": args.rank,
+        "steps": args.steps, "lr": args.lr, "seed": args.seed,
+        **{f"psnr_{k}": statistics.mean(means[k]) for k in KEYS},
+        **{f"{k}_minus_a": statistics.mean(x - y for x, y in zip(means[k], means["a"]))
+           for k in KEYS[1:]},
+        "per_target_minus_shared": statistics.mean(
+            x - y for x, y in zip(means["per_target"], means["shared"])),
+        "seconds": time.perf_counter() - t0}
+    with open(out / "per_target.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
