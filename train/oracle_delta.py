@@ -63,8 +63,8 @@ def fit_scene(model, batch, mode: str, rank: int, steps: int, lr: float, seed: i
     o, i, k = spec.out_channels, spec.in_channels, spec.kernel_size
     rows = n if mode == "per-target" else 1
     g = torch.Generator().manual_seed(seed)
-    # U = 0 and the bias change = 0: the fit starts exactly at (a); V random so that U gets
-    # a gradient (the same start as (c)'s hypernetwork with delta_init_std > 0, reversed)
+    # U = 0 and the bias change = 0: the fit starts exactly at (a); V random (N(0, 1), scaled
+    # by 1/sqrt(fan_in) as (c)'s V is) so that U gets a gradient from the first step
     u = torch.zeros(rows, o, rank, requires_grad=True)
     v = torch.randn(rows, rank, i, k, k, generator=g).requires_grad_(True)
     bias = torch.zeros(rows, o, requires_grad=True)
@@ -98,9 +98,9 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint", required=True, help="a trained (a), e.g. the shipped one")
     p.add_argument("--data", required=True, help="a held-out synthetic set")
     p.add_argument("--split", default="standard")
-    p.add_argument("--scenes", type=int, default=60)
+    p.add_argument("--scenes", type=int, default=30)
     p.add_argument("--rank", type=int, default=4, help="rank of Delta W (tiny (c): 4)")
-    p.add_argument("--steps", type=int, default=150, help="Adam steps per scene and mode")
+    p.add_argument("--steps", type=int, default=100, help="Adam steps per scene and mode")
     p.add_argument("--lr", type=float, default=1e-2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True)
