@@ -141,7 +141,9 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
               "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
               "variation; the multi-seed verdict (3 seeds x 60 scenes, "
               "`train/verdict_study.py`) is in BENCHMARKS.md, \"View conditioning: the "
-              "verdict\".", "", verdict_table(verdict), "", "![verdict](verdict.png)", "",
+              "verdict\", with an oracle bound on what a per-target Delta W can add "
+              "(`train/oracle_delta.py`).", "", verdict_table(verdict), "",
+              "![verdict](verdict.png)", "",
               "## Per split (PSNR / SSIM / depth AbsRel)", "",
               "| split | scenes | " + " | ".join(_label(v, manifest) for v in summaries) + " |",
               "|---|---|" + "---|" * len(summaries)]
