@@ -24,7 +24,9 @@ which the script checks against a plain forward.
     python train/oracle_delta.py --checkpoint checkpoints/tiny_baseline.pt \
         --data outputs/big/test2000 --split standard --scenes 30 --steps 100 --out outputs/oracle
 
-One thread; writes ``<out>/per_target.csv`` and ``<out>/summary.json``.
+One thread; writes ``<out>/per_target.csv`` and ``<out>/summary.json`` (each difference with
+its bootstrap 95% interval over scenes). Two runs' columns are compared with ``--compare
+DIR_X:COLUMN DIR_Y:COLUMN``, e.g. per-target against the rank-12 shared control.
 """
 
 import argparse
@@ -94,10 +96,47 @@ def fit_scene(model, batch, mode: str, rank: int, steps: int, lr: float, seed: i
     return {"before": before.tolist(), "after": after.tolist()}
 
 
+def paired(rows_x: list, x: str, rows_y: list, y: str) -> dict:
+    """Column ``x`` of ``rows_x`` minus column ``y`` of ``rows_y`` (per_target.csv rows), paired
+    by scene (the mean of its targets): the mean over scenes, its bootstrap 95% interval over
+    scenes (``usplat_dr.evaluation.verdict.bootstrap_interval``) and the scenes where x is
+    higher."""
+    import numpy as np
+
+    from usplat_dr.evaluation.verdict import bootstrap_interval
+
+    def by_scene(rows, col):
+        out: dict[str, list[float]] = {}
+        for r in rows:
+            out.setdefault(r["scene"], []).append(float(r[col]))
+        return {k: statistics.mean(v) for k, v in out.items()}
+
+    a, b = by_scene(rows_x, x), by_scene(rows_y, y)
+    if set(a) != set(b):
+        raise SystemExit(f"{x} and {y}: the two tables hold different scenes")
+    d = np.array([[a[k] - b[k] for k in sorted(a)]])
+    low, high = bootstrap_interval(d)
+    return {"mean": float(d.mean()), "low": low, "high": high,
+            "scenes_higher": int((d > 0).sum()), "scenes": d.shape[1]}
+
+
+def compare(spec_x: str, spec_y: str) -> dict:
+    """``--compare DIR_X:COLUMN DIR_Y:COLUMN``: the paired difference of two runs' columns."""
+    tables = []
+    for spec in (spec_x, spec_y):
+        folder, _, col = spec.rpartition(":")
+        with open(Path(folder) / "per_target.csv") as f:
+            tables += [list(csv.DictReader(f)), col]
+    return paired(*tables)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", required=True, help="a trained (a), e.g. the shipped one")
-    p.add_argument("--data", required=True, help="a held-out synthetic set")
+    p.add_argument("--compare", nargs=2, metavar="DIR:COLUMN",
+                   help="instead, the paired difference of two runs' columns (e.g. "
+                        "outputs/oracle:per_target outputs/oracle_r12_standard:shared)")
+    p.add_argument("--checkpoint", help="a trained (a), e.g. the shipped one")
+    p.add_argument("--data", help="a held-out synthetic set")
     p.add_argument("--split", default="standard")
     p.add_argument("--scenes", type=int, default=30)
     p.add_argument("--rank", type=int, default=4, help="rank of Delta W (tiny (c): 4)")
@@ -105,8 +144,14 @@ def main(argv=None) -> int:
     p.add_argument("--lr", type=float, default=1e-2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
-    p.add_argument("--out", required=True)
+    p.add_argument("--out")
     args = p.parse_args(argv)
+    if args.compare:
+        print(json.dumps(compare(*args.compare), indent=1))
+        return 0
+    for name in ("checkpoint", "data", "out"):
+        if getattr(args, name) is None:
+            p.error(f"--{name} is required (unless --compare)")
     keys = ("a", *(m.replace("-", "_") for m in args.modes))  # per_target.csv's PSNR columns
     import torch
     from torch.utils.data import default_collate
@@ -115,6 +160,7 @@ def main(argv=None) -> int:
     from usplat_dr.data.types import model_inputs
     from usplat_dr.evaluation import synthetic_indices
     from usplat_dr.evaluation.metrics import psnr
+    from usplat_dr.io import atomic_open, write_json
     from usplat_dr.training.checkpoints import load_model, training_image_shape
 
     torch.set_num_threads(1)
@@ -151,28 +197,21 @@ def main(argv=None) -> int:
         print(f"[{s + 1}/{args.scenes}] {example['scene']}: "
               + ", ".join(f"{k} {mean[k]:.3f}" for k in keys)
               + f" dB ({time.perf_counter() - t0:.0f} s)", flush=True)
-    scenes = sorted({r["scene"] for r in rows})
-
-    def per_scene(key):
-        return [statistics.mean(r[key] for r in rows if r["scene"] == sc) for sc in scenes]
-
-    means = {k: per_scene(k) for k in keys}
-    summary = {
-        "checkpoint": args.checkpoint, "data": args.data, "split": args.split,
-        "scenes": len(scenes), "targets": len(rows), "rank": args.rank,
-        "steps": args.steps, "lr": args.lr, "seed": args.seed,
-        **{f"psnr_{k}": statistics.mean(means[k]) for k in keys},
-        **{f"{k}_minus_a": statistics.mean(x - y for x, y in zip(means[k], means["a"]))
-           for k in keys[1:]},
-        "seconds": time.perf_counter() - t0}
-    if "shared" in means and "per_target" in means:
-        summary["per_target_minus_shared"] = statistics.mean(
-            x - y for x, y in zip(means["per_target"], means["shared"]))
-    with open(out / "per_target.csv", "w", newline="") as f:
+    with atomic_open(out / "per_target.csv", "w") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    diffs = [(k, "a") for k in keys[1:]]
+    if "shared" in keys and "per_target" in keys:
+        diffs.append(("per_target", "shared"))
+    summary = {
+        "checkpoint": args.checkpoint, "data": args.data, "split": args.split,
+        "scenes": len({r["scene"] for r in rows}), "targets": len(rows), "rank": args.rank,
+        "steps": args.steps, "lr": args.lr, "seed": args.seed,
+        **{f"psnr_{k}": statistics.mean(r[k] for r in rows) for k in keys},
+        **{f"{x}_minus_{y}": paired(rows, x, rows, y) for x, y in diffs},
+        "seconds": time.perf_counter() - t0}
+    write_json(out / "summary.json", summary)
     print(json.dumps(summary, indent=1))
     return 0
 
