@@ -25,11 +25,8 @@ def one_process(args) -> dict:
     """This process's medians (ms) per variant, with or without the keeper."""
     import logging
 
-    import torch
-    from bench_training import timed_step
+    from bench_training import make_trainer, timed_step
 
-    from usplat_dr.config import load_config
-    from usplat_dr.training import Trainer
     from usplat_dr.training.cores import CoreKeeper
 
     logging.basicConfig(level=logging.ERROR)
@@ -38,12 +35,7 @@ def one_process(args) -> dict:
     try:
         out = {}
         for variant in args.variants:
-            torch.manual_seed(0)
-            cfg = load_config(["synthetic_tiny_depth.yaml"], [
-                f"dataset.roots=[{args.data}]", "output_dir=/tmp/bench_cores",
-                f"model.variant={variant}", f"threads={args.threads}",
-                "train.progress=false"])
-            tr = Trainer(cfg)
+            tr = make_trainer(args.data, variant, args.threads)
             rs = [timed_step(tr, tr.batches.next(), False) for _ in range(args.steps + 3)][3:]
             out[variant] = {"wall": {ph: 1000 * statistics.median(r["wall"][ph] for r in rs)
                                      for ph in PHASES},

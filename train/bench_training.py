@@ -67,6 +67,19 @@ def timed_step(trainer, batch, old: bool) -> dict:
     return {"wall": t, "cpu": c}
 
 
+def make_trainer(data: str, variant: str, threads: int):
+    """A trainer of the shipped recipe (tiny preset, 64x64) on ``data``, seeded."""
+    import torch
+
+    from usplat_dr.config import load_config
+    from usplat_dr.training import Trainer
+
+    torch.manual_seed(0)
+    return Trainer(load_config(["synthetic_tiny_depth.yaml"], [
+        f"dataset.roots=[{data}]", "output_dir=/tmp/bench_training",
+        f"model.variant={variant}", f"threads={threads}", "train.progress=false"]))
+
+
 def clip_ab(trainer, batch, repeats: int) -> tuple[float, float]:
     """Median ms of (group_grad_norms + clip_grad_norm_) and of clip_gradients."""
     import torch
@@ -106,31 +119,22 @@ def main(argv=None) -> int:
 
     import torch
 
-    from usplat_dr.config import load_config
-    from usplat_dr.training import Trainer
-
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("usplat_dr").setLevel(logging.ERROR)
-
-    def trainer(variant):
-        torch.manual_seed(0)
-        return Trainer(load_config(["synthetic_tiny_depth.yaml"], [
-            f"dataset.roots=[{args.data}]", "output_dir=/tmp/bench_training",
-            f"model.variant={variant}", f"threads={args.threads}", "train.progress=false"]))
 
     if args.clip:
         print(f"threads={args.threads}, medians of {args.clip} calls each (ms)")
         print("| variant | group_grad_norms + clip_grad_norm_ | clip_gradients | ratio |")
         print("|---|---|---|---|")
         for variant in args.variants:
-            tr = trainer(variant)
+            tr = make_trainer(args.data, variant, args.threads)
             two, one = clip_ab(tr, tr.batches.next(), args.clip)
             print(f"| {variant} | {two:.2f} | {one:.2f} | {one / two:.2f} |")
         return 0
     trainers = {}
     for variant in args.variants:
         for old in (True, False):
-            tr = trainer(variant)
+            tr = make_trainer(args.data, variant, args.threads)
             if old:
                 tr.optimizer = torch.optim.Adam(tr.model.parameters(), lr=1e-3)
             trainers[(variant, old)] = tr

@@ -10,8 +10,6 @@ so it covers both sources of variation; with one seed it is the ordinary bootstr
 
 Examples:
     >>> import numpy as np
-
-from usplat_dr.io import atomic_open
     >>> d = np.full((3, 50), 0.5)  # every scene and seed 0.5 dB better
     >>> lo, hi = bootstrap_interval(d, samples=200)
     >>> round(lo, 6), round(hi, 6)

@@ -32,7 +32,6 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, default_collate
 from tqdm import tqdm
 
-from usplat_dr.training import cores as _cores
 from usplat_dr.config import ConfigError
 from usplat_dr.data.dataset import ChunkDataset, dataset_from_section
 from usplat_dr.data.types import model_inputs
@@ -43,6 +42,7 @@ from usplat_dr.evaluation.protocol import depth_scored_pixels
 from usplat_dr.evaluation.provenance import provenance
 from usplat_dr.geometry.cameras import pixel_centres
 from usplat_dr.io import torch_save
+from usplat_dr.training import cores as _cores
 from usplat_dr.training.checkpoints import read_usplat_checkpoint
 from usplat_dr.training.config import RootCfg, model_from_config
 from usplat_dr.training.distributed import (
