@@ -1,32 +1,38 @@
-"""How much could a per-target Delta W give at best? An oracle bound for the verdict.
+"""How much could a per-target Delta W give at best? An oracle bound, per layer, with the
+primary network frozen.
 
-(c) changes one layer per target view: the last Gaussian-head convolution gets W + Delta W,
-with Delta W = U V (rank r) and a bias change that the view-specific branch predicts from
-the context images and the target camera. Whatever that branch learns, its output is some
-Delta W. This script finds, for each held-out scene, the best Delta W there is for its
-target views by gradient descent on the target images themselves (which no model sees), on
-top of the trained (a):
+(c) changes the heads' convolutions per target view: W + Delta W, with Delta W = U V (rank r)
+or a full matrix, and a bias change, that the view-specific branch predicts from the context
+images and the target camera. Whatever that branch learns, its output is some Delta W. This
+script finds, for each held-out scene, the best Delta W there is on the layers ``--layer``
+names by gradient descent on the target images themselves (which no model sees), on top of a
+trained (a) whose own weights stay frozen:
 
 - ``shared``: one Delta W for all the scene's targets (scene-level adaptation, the same for
-  every view);
-- ``per-target``: one Delta W per target view (what view conditioning can express);
+  every view), 2 x ``--steps`` Adam steps;
+- ``per-target``: one Delta W per target view (what view conditioning can express), started
+  from the shared fit at ``--steps`` and fitted ``--steps`` more. Every shared Delta W is also
+  a per-target one, and both fits take the same steps from the same start, so the comparison
+  is nested: per-target minus shared is what making Delta W depend on the view adds beyond
+  adapting to the scene, at equal rank;
 - ``context``: one Delta W fitted to render the two context views themselves, then scored on
-  the targets: test-time adaptation with only what a test gives, which a network conditioned
-  on the context could in principle learn to predict.
+  the targets: test-time adaptation with only what a test gives.
 
 ``shared`` and ``per-target`` are fitted to the images they are scored on, so they are upper
-bounds; ``per-target`` minus ``shared`` bounds what making Delta W depend on the view adds
-beyond adapting to the scene. ``per-target`` has one Delta W per view, so three times the
-parameters of ``shared`` for three targets: ``--modes shared --rank 12`` is the control with as
-many parameters as three rank-4 Delta Ws. At step 0 (Delta W = 0) each target's PSNR is (a)'s,
-which the script checks against a plain forward.
+bounds, for this layer choice and rank and the frozen primary network; an optimiser that has
+not converged understates both (run ``--steps`` 100 / 300 / 1000 on a few scenes: the
+convergence check). ``--probe pair-bias`` replaces Delta W by a bias change of
+``to_disparity.2`` (disparity and density) per (target, context view) pair, shared against
+per target: whether a Delta W per (target, context view) pair would have room. At step 0
+(Delta W = 0) each target's PSNR is (a)'s, which the script checks against a plain forward.
 
     python train/oracle_delta.py --checkpoint checkpoints/tiny_baseline.pt \
-        --data outputs/big/test2000 --split standard --scenes 30 --steps 100 --out outputs/oracle
+        --data outputs/big/test2000 --split standard --scenes 30 --steps 100 \
+        --layer all --rank 4 --out outputs/oracle/all_r4
 
-One thread; writes ``<out>/per_target.csv`` and ``<out>/summary.json`` (each difference with
-its bootstrap 95% interval over scenes). Two runs' columns are compared with ``--compare
-DIR_X:COLUMN DIR_Y:COLUMN``, e.g. per-target against the rank-12 shared control.
+One thread; writes ``<out>/per_target.csv`` after every scene (a killed run resumes from it)
+and ``<out>/summary.json`` (each difference with its bootstrap 95% interval over scenes). Two
+runs' columns are compared with ``--compare DIR_X:COLUMN DIR_Y:COLUMN``.
 """
 
 import argparse
@@ -45,55 +51,166 @@ portable.enable()  # AVX2 code paths, as the usplat command (before torch is imp
 
 
 MODES = ("shared", "per-target", "context")
+#: ``--layer`` values: a convolution of the heads, or ``all`` (every one, as (c) has it)
+LAYERS = ("to_gaussians.0", "to_gaussians.2", "to_disparity.0", "to_disparity.2", "all")
+INJECTABLE_ALL = LAYERS[:-1]
+PROBE_LAYER = "to_disparity.2"  # outputs disparity and density: the probe's layer
 
 
-def fit_scene(model, batch, mode: str, rank: int, steps: int, lr: float, seed: int) -> dict:
-    """PSNR per target before and after fitting Delta W (``mode``: ``shared`` or
-    ``per-target`` on the target images, ``context`` shared on the context images)."""
+class DeltaFit:
+    """Trainable Delta W for ``specs``, ``rows`` of them (1: shared by every target).
+
+    Rank-r form (``rank`` an int): U = 0 and the bias change = 0, so the fit starts exactly at
+    (a); V random (N(0, 1), scaled by 1/sqrt(fan_in) as (c)'s V is) so that U gets a gradient
+    from the first step. Full form (``rank`` None): Delta W = 0. ``pair_bias``: no weight
+    change, a bias change per (target, context view) pair of ``views`` views (the probe)."""
+
+    def __init__(self, specs, rows: int, rank, generator, pair_bias: bool = False,
+                 views: int = 2):
+        import torch
+
+        self.specs, self.rank, self.pair_bias = specs, rank, pair_bias
+        self.parts = {}
+        for s in specs:
+            o, i, k = s.out_channels, s.in_channels, s.kernel_size
+            if pair_bias:
+                p = {"bias": torch.zeros(rows, views, o)}
+            elif rank is None:
+                p = {"full": torch.zeros(rows, o, i, k, k), "bias": torch.zeros(rows, o)}
+            else:
+                p = {"u": torch.zeros(rows, o, rank),
+                     "v": torch.randn(rows, rank, i, k, k, generator=generator),
+                     "bias": torch.zeros(rows, o)}
+            self.parts[s.name] = {key: t.requires_grad_(True) for key, t in p.items()}
+
+    def parameters(self) -> list:
+        return [t for p in self.parts.values() for t in p.values()]
+
+    def spread(self, rows: int) -> "DeltaFit":
+        """A copy with every row equal to this (one-row) fit: the nested start of a
+        per-target fit from a shared one."""
+        other = object.__new__(DeltaFit)
+        other.specs, other.rank, other.pair_bias = self.specs, self.rank, self.pair_bias
+        other.parts = {name: {key: t.detach().expand(rows, *t.shape[1:]).clone()
+                              .requires_grad_(True) for key, t in p.items()}
+                       for name, p in self.parts.items()}
+        return other
+
+    def deltas(self, m: int) -> dict:
+        """layer -> ``LayerDelta`` for ``m`` targets (a shared fit repeated)."""
+        import torch
+
+        from usplat_dr.model.hypernet.hypernetwork import LayerDelta
+
+        out = {}
+        for s in self.specs:
+            p = {key: t if t.shape[0] == m else t.expand(m, *t.shape[1:])
+                 for key, t in self.parts[s.name].items()}
+            if self.pair_bias:  # a rank-1 zero weight change carries the per-view bias
+                out[s.name] = LayerDelta(
+                    bias=p["bias"], u=torch.zeros(m, s.out_channels, 1),
+                    v=torch.zeros(m, 1, s.in_channels, s.kernel_size, s.kernel_size))
+            elif self.rank is None:
+                out[s.name] = LayerDelta(bias=p["bias"], full=p["full"])
+            else:
+                out[s.name] = LayerDelta(bias=p["bias"], u=p["u"],
+                                         v=p["v"] / math.sqrt(s.fan_in))
+        return out
+
+
+def fit_scene(model, batch, specs, rank, steps: int, lr: float, seed: int, modes,
+              pair_bias: bool = False) -> dict:
+    """PSNR per target before and after fitting Delta W on ``specs``, per mode:
+
+    - ``shared``: one Delta W for every target, fitted to the targets for 2 x ``steps``;
+    - ``per-target``: one per target, started from the shared fit after ``steps`` (each
+      target's Delta W = the shared one) and fitted ``steps`` more: the same 2 x ``steps``,
+      and a model class that contains the shared one (nested);
+    - ``context``: one shared Delta W fitted to the two context views for ``steps``, scored on
+      the targets (what a test has).
+
+    Returns mode -> {"before", "after"} (PSNR lists over targets); ``shared_half``: the
+    shared fit after ``steps`` (the per-target fit's start)."""
     import torch
 
     from usplat_dr.data.types import model_inputs
     from usplat_dr.evaluation.metrics import psnr
-    from usplat_dr.model.hypernet.hypernetwork import LayerDelta
 
     args = model_inputs(batch, "cpu")
     gt = batch["target"]["image"][0]
     n = gt.shape[0]
-    fit_args, fit_gt = args, gt
-    if mode == "context":  # render the context views themselves: what a test has
-        fit_args, fit_gt = (*args[:5], *args[1:5]), args[0][0]
-    spec = next(s for s in model.specs if s.name in model.cfg.specific_layers)
-    o, i, k = spec.out_channels, spec.in_channels, spec.kernel_size
-    rows = n if mode == "per-target" else 1
-    g = torch.Generator().manual_seed(seed)
-    # U = 0 and the bias change = 0: the fit starts exactly at (a); V random (N(0, 1), scaled
-    # by 1/sqrt(fan_in) as (c)'s V is) so that U gets a gradient from the first step
-    u = torch.zeros(rows, o, rank, requires_grad=True)
-    v = torch.randn(rows, rank, i, k, k, generator=g).requires_grad_(True)
-    bias = torch.zeros(rows, o, requires_grad=True)
-    weights = dict(zip(model.cfg.target_layers, model.agnostic_weights()))
+    weights = {s.name: (model._conv(s.name).weight, model._conv(s.name).bias) for s in specs}
+    current = {}
 
     def target_weights(images, intrinsics, extrinsics, target_intrinsics, *_):
-        m = target_intrinsics.shape[1]
+        return weights, current["fit"].deltas(target_intrinsics.shape[1]), {}
 
-        def each(t):
-            return t if rows == m else t.expand(m, *t.shape[1:])
-        delta = LayerDelta(bias=each(bias), u=each(u), v=each(v) / math.sqrt(spec.fan_in))
-        return weights, {spec.name: delta}, {}
+    def score(fit) -> list[float]:
+        current["fit"] = fit
+        with torch.no_grad():
+            return psnr(model(*args).color[0], gt).tolist()
 
+    def optimise(fit, fit_args, fit_gt, k: int):
+        current["fit"] = fit
+        opt = torch.optim.Adam(fit.parameters(), lr=lr)
+        for _ in range(k):
+            loss = (model(*fit_args).color[0] - fit_gt).square().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        return fit
+
+    g = torch.Generator().manual_seed(seed)
     model._target_weights = target_weights
-    opt = torch.optim.Adam([u, v, bias], lr=lr)
-    with torch.no_grad():
-        before = psnr(model(*args).color[0], gt)
-    for _ in range(steps):
-        loss = (model(*fit_args).color[0] - fit_gt).square().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-    with torch.no_grad():
-        after = psnr(model(*args).color[0], gt)
-    del model._target_weights
-    return {"before": before.tolist(), "after": after.tolist()}
+    try:
+        out = {}
+        if "shared" in modes or "per-target" in modes:
+            shared = DeltaFit(specs, 1, rank, g, pair_bias)
+            before = score(shared)
+            optimise(shared, args, gt, steps)
+            out["shared_half"] = {"before": before, "after": score(shared)}
+            if "per-target" in modes:
+                per = optimise(shared.spread(n), args, gt, steps)
+                out["per-target"] = {"before": before, "after": score(per)}
+            if "shared" in modes:
+                optimise(shared, args, gt, steps)
+                out["shared"] = {"before": before, "after": score(shared)}
+        if "context" in modes:  # render the context views themselves: what a test has
+            fit = DeltaFit(specs, 1, rank, g, pair_bias)
+            before = score(fit)
+            optimise(fit, (*args[:5], *args[1:5]), args[0][0], steps)
+            out["context"] = {"before": before, "after": score(fit)}
+    finally:
+        del model._target_weights
+    return out
+
+
+def rank_arg(text: str):
+    """``--rank``: a positive int, or ``full``."""
+    if text == "full":
+        return None
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"a rank >= 1 or 'full', got {text!r}")
+    return int(text)
+
+
+def resume(out: Path, settings: dict) -> tuple[list, set, float]:
+    """Rows, scenes and seconds of an earlier run in ``out`` with the same settings (a killed
+    run goes on from its last finished scene); nothing when there is none. A run with other
+    settings in ``out`` is an error, not overwritten."""
+    progress = out / "progress.json"
+    if not progress.is_file():
+        return [], set(), 0.0
+    old = json.loads(progress.read_text())
+    seconds = old.pop("seconds", 0.0)
+    if old != settings:
+        raise SystemExit(f"--out {out} holds a run with other settings ({progress}); choose "
+                         f"another --out or delete it")
+    with open(out / "per_target.csv") as f:
+        rows = [{k: v if k == "scene" else int(v) if k == "target" else float(v)
+                 for k, v in r.items()} for r in csv.DictReader(f)]
+    print(f"resuming {out}: {len({r['scene'] for r in rows})} scenes done", flush=True)
+    return rows, {r["scene"] for r in rows}, seconds
 
 
 def paired(rows_x: list, x: str, rows_y: list, y: str) -> dict:
@@ -139,8 +256,16 @@ def main(argv=None) -> int:
     p.add_argument("--data", help="a held-out synthetic set")
     p.add_argument("--split", default="standard")
     p.add_argument("--scenes", type=int, default=30)
-    p.add_argument("--rank", type=int, default=4, help="rank of Delta W (tiny (c): 4)")
-    p.add_argument("--steps", type=int, default=100, help="Adam steps per scene and mode")
+    p.add_argument("--layer", nargs="+", choices=LAYERS, default=["all"],
+                   help="the convolutions that take Delta W (all: both heads' four, as (c))")
+    p.add_argument("--rank", type=rank_arg, default=4,
+                   help="rank of Delta W (tiny (c): 4), or full (a full Delta W per view)")
+    p.add_argument("--probe", choices=("pair-bias",),
+                   help="instead of Delta W: a bias change of " + PROBE_LAYER + " (disparity "
+                        "and density) per (target, context view) pair")
+    p.add_argument("--steps", type=int, default=100,
+                   help="Adam steps per fit: the shared fit runs 2x, the per-target one starts "
+                        "from it at half-way (nested), the context fit runs 1x")
     p.add_argument("--lr", type=float, default=1e-2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
@@ -152,7 +277,12 @@ def main(argv=None) -> int:
     for name in ("checkpoint", "data", "out"):
         if getattr(args, name) is None:
             p.error(f"--{name} is required (unless --compare)")
-    keys = ("a", *(m.replace("-", "_") for m in args.modes))  # per_target.csv's PSNR columns
+    layers = INJECTABLE_ALL if "all" in args.layer else tuple(dict.fromkeys(args.layer))
+    if args.probe:
+        layers = (PROBE_LAYER,)
+        if "context" in args.modes:
+            p.error("--probe pair-bias compares shared and per-target fits: drop context from "
+                    "--modes")
     import torch
     from torch.utils.data import default_collate
 
@@ -161,6 +291,7 @@ def main(argv=None) -> int:
     from usplat_dr.evaluation import synthetic_indices
     from usplat_dr.evaluation.metrics import psnr
     from usplat_dr.io import atomic_open, write_json
+    from usplat_dr.model.hypernet.hypernetwork import ConvSpec
     from usplat_dr.training.checkpoints import load_model, training_image_shape
 
     torch.set_num_threads(1)
@@ -169,21 +300,29 @@ def main(argv=None) -> int:
         p.error(f"--checkpoint: a trained (a) (variant baseline), got {model.cfg.variant!r}")
     for q in model.parameters():
         q.requires_grad_(False)
+    specs = tuple(ConvSpec.of(name, model._conv(name)) for name in layers)
     shape = training_image_shape(args.checkpoint) or (64, 64)
     index = synthetic_indices(args.data, [args.split])[args.split]
     ds = dataset_from_section({"name": "synth", "roots": [args.data],
                                "image_shape": list(shape), "evaluation_index": index}, "test")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, t0 = [], time.perf_counter()
+    settings = {"checkpoint": args.checkpoint, "data": args.data, "split": args.split,
+                "layers": list(layers), "rank": "full" if args.rank is None else args.rank,
+                "probe": args.probe, "steps": args.steps, "lr": args.lr, "seed": args.seed,
+                "modes": args.modes, "primary_network": "frozen"}
+    rows, done, seconds = resume(out, settings)
+    t0 = time.perf_counter() - seconds
     for s, example in enumerate(ds):
         if s == args.scenes:
             break
+        if example["scene"] in done:
+            continue
         batch = default_collate([example])
         with torch.no_grad():  # (a) as `usplat eval` runs it: the step-0 check's reference
             plain = psnr(model(*model_inputs(batch, "cpu")).color[0], batch["target"]["image"][0])
-        fits = {mode: fit_scene(model, batch, mode, args.rank, args.steps, args.lr,
-                                args.seed + s) for mode in args.modes}
+        fits = fit_scene(model, batch, specs, args.rank, args.steps, args.lr, args.seed + s,
+                         args.modes, args.probe == "pair-bias")
         for j, ref in enumerate(plain.tolist()):
             for mode, f in fits.items():
                 # Delta W = 0 renders (a): the same up to the rank-r path's float rounding
@@ -193,21 +332,23 @@ def main(argv=None) -> int:
                                      f"{f['before'][j]:.4f} dB, (a) {ref:.4f} dB")
             rows.append({"scene": example["scene"], "target": j, "a": ref,
                          **{m.replace("-", "_"): f["after"][j] for m, f in fits.items()}})
+        keys = [k for k in rows[0] if k not in ("scene", "target")]
         mean = {k: statistics.mean(r[k] for r in rows) for k in keys}
+        elapsed = time.perf_counter() - t0
+        with atomic_open(out / "per_target.csv", "w") as f:  # after every scene: resumable
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        write_json(out / "progress.json", {**settings, "seconds": elapsed})
         print(f"[{s + 1}/{args.scenes}] {example['scene']}: "
-              + ", ".join(f"{k} {mean[k]:.3f}" for k in keys)
-              + f" dB ({time.perf_counter() - t0:.0f} s)", flush=True)
-    with atomic_open(out / "per_target.csv", "w") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+              + ", ".join(f"{k} {mean[k]:.3f}" for k in keys) + f" dB ({elapsed:.0f} s)",
+              flush=True)
+    keys = [k for k in rows[0] if k not in ("scene", "target")]
     diffs = [(k, "a") for k in keys[1:]]
     if "shared" in keys and "per_target" in keys:
         diffs.append(("per_target", "shared"))
     summary = {
-        "checkpoint": args.checkpoint, "data": args.data, "split": args.split,
-        "scenes": len({r["scene"] for r in rows}), "targets": len(rows), "rank": args.rank,
-        "steps": args.steps, "lr": args.lr, "seed": args.seed,
+        **settings, "scenes": len({r["scene"] for r in rows}), "targets": len(rows),
         **{f"psnr_{k}": statistics.mean(r[k] for r in rows) for k in keys},
         **{f"{x}_minus_{y}": paired(rows, x, rows, y) for x, y in diffs},
         "seconds": time.perf_counter() - t0}

@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from usplat_dr.cli import main
 from usplat_dr.data import ChunkDataset, ViewSamplerEvaluationCfg, dataset_cfg, read_chunk
@@ -152,3 +153,45 @@ def test_cli_synth_chunk_scenes(tmp_path):
         main(["synth", "--out", str(tmp_path), "--chunk-scenes", "0"])
     with pytest.raises(ValueError, match="chunk_scenes"):
         synthesize(tmp_path, **{**ARGS, "chunk_scenes": 0})
+
+
+@pytest.mark.parametrize("kind", ["indoor", "outdoor", "object"])
+def test_view_dependent_appearance_keeps_geometry(kind):
+    from usplat_dr.data.synth.scenes import GROUND, make_spec
+
+    plain, shiny = make_spec(kind, 11, 6), make_spec(kind, 11, 6, "view-dependent")
+    assert shiny["cameras"] == plain["cameras"] and shiny["near_far"] == plain["near_far"]
+    assert [(s["name"], s["to_world"]) for s in shiny["shapes"]] == [
+        (s["name"], s["to_world"]) for s in plain["shapes"]]
+    types = [s["material"]["type"] for s in shiny["shapes"]]
+    assert sum(t in ("glossy", "conductor") for t in types) >= len(types) / 2
+    for s in shiny["shapes"]:
+        if s["name"] in GROUND:
+            assert s["material"]["type"] == "glossy" and "texture" in s["material"]
+    assert shiny["integrator"] == {"type": "path", "max_depth": 4}  # reflections of the scene
+    light_types = [x["type"] for x in shiny["lights"]]
+    assert "constant" not in light_types
+    assert ("envmap" in light_types) == (kind != "indoor")  # a closed room sees no sky
+    assert "view_dependent" in shiny["tags"] and "appearance" not in plain
+    with pytest.raises(ValueError, match="appearance"):
+        make_spec(kind, 11, 6, "shiny")
+
+
+def test_view_dependent_set_is_deterministic_with_the_same_depths(synth_set, tmp_path):
+    from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY
+
+    args = {**ARGS, "appearance": "view-dependent"}
+    synthesize(tmp_path / "a", **args)
+    synthesize(tmp_path / "b", **args, jobs=2)
+    assert _digest(tmp_path / "a") == _digest(tmp_path / "b")  # path tracing too
+    shiny = {s["key"]: s for s in read_chunk(tmp_path / "a" / "test" / "000000.torch")}
+    plain = {s["key"]: s for s in read_chunk(synth_set / "test" / "000000.torch")}
+    assert sorted(shiny) == sorted(k + "_vd" for k in plain)
+    for key, s in plain.items():  # the same geometry: the same depth maps, bit for bit
+        assert torch.equal(shiny[key + "_vd"]["depths"], s["depths"])
+    codes = np.concatenate([s["materials"].numpy().ravel() for s in shiny.values()])
+    assert np.isin(codes, [GLOSSY, CONDUCTOR]).mean() > 0.3
+    assert json.loads((tmp_path / "a" / "synth.json").read_text())["appearance"] == (
+        "view-dependent")
+    with pytest.raises(ValueError, match="appearance"):
+        synthesize(tmp_path / "c", **{**ARGS, "appearance": "shiny"})

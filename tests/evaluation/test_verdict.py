@@ -6,7 +6,14 @@ import csv
 import numpy as np
 import pytest
 
-from usplat_dr.evaluation.verdict import bootstrap_interval, chart, compare, table
+from usplat_dr.evaluation.verdict import (
+    Comparison,
+    bootstrap_interval,
+    chart,
+    compare,
+    seed_interval,
+    table,
+)
 
 
 def test_bootstrap_interval_approaches_the_normal_interval():
@@ -73,3 +80,50 @@ def test_compare_pairs_scenes_and_seeds(tmp_path):
     assert chart(rows, tmp_path / "verdict.png").stat().st_size > 0
     with pytest.raises(ValueError, match="same number of seeds"):
         compare({"baseline": runs["baseline"], "full": runs["full"][:2]})
+
+
+def test_seed_interval_is_students_t_over_the_seed_means():
+    # Seed means 0.1, 0.3, 0.5 (each seed's scenes around them, one NaN left out): mean 0.3,
+    # sd 0.2, t_{0.975, 2} = 4.302653 (printed tables), so 0.3 +- 4.302653 * 0.2 / sqrt(3).
+    # 1e-9: float64 arithmetic on numbers of order 1.
+    d = np.array([[0.0, 0.2, np.nan], [0.3, 0.3, 0.3], [0.4, 0.6, 0.5]])
+    lo, hi = seed_interval(d)
+    half = 4.302653 * 0.2 / np.sqrt(3)
+    assert lo == pytest.approx(0.3 - half, abs=1e-6) and hi == pytest.approx(0.3 + half, abs=1e-6)
+    assert np.isnan(seed_interval(d[:1])).all()  # one seed: no spread to estimate
+    with pytest.raises(ValueError, match="seeds, scenes"):
+        seed_interval(np.zeros(3))
+
+
+def test_with_three_seeds_the_seed_level_interval_is_the_wider_one():
+    # Seeds that disagree (+-0.15 dB) and 60 scenes each: the crossed bootstrap resamples
+    # only 3 seed means and understates their spread; Student's t with 2 degrees of freedom
+    # does not (the difference the verdict tables now show side by side).
+    rng = np.random.default_rng(4)
+    d = rng.normal(0, 0.3, size=(3, 60)) + np.array([[-0.15], [0.0], [0.15]])
+    lo, hi = bootstrap_interval(d, samples=5000)
+    slo, shi = seed_interval(d)
+    assert shi - slo > 1.5 * (hi - lo)
+
+
+def _row(mean, low, high, seeds=3, metric="psnr"):
+    return Comparison("standard", metric, "full", mean, mean - 0.01, mean + 0.01, 60, seeds,
+                      0.5, low, high)
+
+
+def test_the_pre_registered_rule():
+    # supports: mean >= +0.3 and the seed-level lower bound > 0
+    assert _row(0.35, 0.05, 0.65).label == "supports"
+    assert _row(0.25, 0.05, 0.45).label == "inconclusive"  # above 0, but under +0.3
+    assert _row(0.35, -0.05, 0.75).label == "inconclusive"  # the interval reaches 0
+    # refutes: the seed-level upper bound < +0.1
+    assert _row(0.0, -0.08, 0.08).label == "refutes"
+    assert _row(0.0, -0.12, 0.12).label == "inconclusive"
+    assert _row(0.0, -0.08, 0.08, metric="ssim").label == ""
+    assert _row(0.5, 0.4, 0.6, seeds=1).label == "needs >= 2 seeds"
+    # better / worse are read from the seed-level interval, not the (narrow) bootstrap
+    assert _row(0.2, -0.1, 0.5).verdict == "no difference shown"
+    assert _row(0.2, 0.1, 0.3).verdict == "better"
+    assert _row(-0.2, -0.3, -0.1).verdict == "worse"
+    assert _row(0.2, float("nan"), float("nan"), seeds=1).verdict == "better (one seed)"
+    assert "seed-level" in table([_row(0.35, 0.05, 0.65)])

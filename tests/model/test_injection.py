@@ -33,7 +33,11 @@ def reference(x, layers, v, b, n):
                     dw = d.full[bi * n + ni] if d.full is not None else (
                         d.u[bi * n + ni] @ d.v[bi * n + ni].flatten(1)).view_as(w)
                     wt, bt = w + dw, bias + d.bias[bi * n + ni]
-                y = F.conv2d(y, wt, bt, padding=w.shape[-1] // 2)
+                if bt.ndim == 2:  # a bias per context view [V, O]: one conv per view
+                    y = torch.cat([F.conv2d(y[vi:vi + 1], wt, bt[vi], padding=w.shape[-1] // 2)
+                                   for vi in range(v)])
+                else:
+                    y = F.conv2d(y, wt, bt, padding=w.shape[-1] // 2)
             rows.append(y)
     return torch.stack(rows).view(b, n, v, *rows[0].shape[1:])
 
@@ -106,3 +110,28 @@ def test_split_deltas_layout():
     assert d.u.tolist() == [[[0, 1], [2, 3], [4, 5]]]
     assert torch.allclose(d.v.flatten(), torch.tensor([6.0, 7, 8, 9]) / math.sqrt(2))
     assert d.bias.tolist() == [[10, 11, 12]]
+
+
+@pytest.mark.parametrize("b", [1, 2])
+def test_a_bias_per_target_and_context_view(b):
+    # The oracle's probe: a bias change per (target, context view) on the last layer, against
+    # the float64 loop that adds each view's own bias (tolerance as above).
+    v, n, h, w = 2, 3, 4, 5
+    gen = torch.Generator().manual_seed(7 + b)
+    x = torch.randn(v * b, 6, h, w, generator=gen, dtype=torch.float64)
+    layers = make([(8, 6), (4, 8)], 2, (1,), b, n, gen)
+    wt, bias, d = layers[1]
+    d.bias = torch.randn(b * n, v, 4, generator=gen, dtype=torch.float64)
+    y, per_target = run_head(x.contiguous(memory_format=torch.channels_last), layers, v, b, n)
+    ref = reference(x, layers, v, b, n)
+    got = adapter_layout(y, per_target, v, b, n)
+    assert torch.allclose(got, ref.flatten(0, 1).flatten(-2).transpose(-1, -2), rtol=1e-10,
+                          atol=1e-10)
+    # the views' biases matter: the same bias for both views gives another output
+    d.bias = d.bias[:, :1].expand(b * n, v, 4)
+    other = adapter_layout(run_head(x.contiguous(memory_format=torch.channels_last), layers,
+                                    v, b, n)[0], True, v, b, n)
+    assert not torch.allclose(other, got, atol=1e-3)
+    d.full, d.u, d.v = torch.zeros(b * n, 4, 8, 3, 3, dtype=torch.float64), None, None
+    with pytest.raises(ValueError, match="bias change per target"):
+        run_head(x.contiguous(memory_format=torch.channels_last), layers, v, b, n)

@@ -139,11 +139,15 @@ def test_per_target_specialisation_and_gradients_reach_every_part():
     for name in FIELDS:
         # identical cameras: the same arithmetic on the same inputs in one batch
         assert torch.allclose(getattr(g0, name), getattr(g2, name), atol=1e-6), name
-    # different cameras: different Gaussians (colour and shape are generated per target).
-    # Measured after these 3 steps: 8e-3 (harmonics) and 2e-3 (covariances), 10x above the
-    # thresholds, which are themselves >= 100x float32 rounding of values of order <= 1.
+    # different cameras: different Gaussians (colour, shape, depth and opacity are generated
+    # per target: Delta W on both heads). Measured after these 3 steps: 6e-3 (harmonics),
+    # 1e-2 (covariances), 7e-3 (means, of magnitude <= 100) and 2.8e-5 (opacities, <= 1),
+    # each >= 7x above its threshold; the thresholds are >= 25x float32 rounding of the
+    # values' magnitude (6e-6 for 100, 6e-8 for 1).
     assert (g0.harmonics - g1.harmonics).abs().max() > 1e-4
     assert (g0.covariances - g1.covariances).abs().max() > 1e-5
+    assert (g0.means - g1.means).abs().max() > 1e-3
+    assert (g0.opacities - g1.opacities).abs().max() > 3e-6
 
 
 @pytest.mark.parametrize("init_std", [0.0, 1e-2])
@@ -213,6 +217,7 @@ def test_agnostic_weights_are_cached_and_refreshed(monkeypatch):
 @pytest.mark.parametrize("overrides", [
     {"delta_rank": None},
     {"specific_layers": ("to_gaussians.0", "to_gaussians.2")},
+    {"target_layers": ("to_gaussians.0", "to_gaussians.2"), "specific_layers": ("to_gaussians.2",)},
     {"target_layers": ("to_gaussians.2", "to_disparity.0"),
      "specific_layers": ("to_disparity.0",)},
 ])
@@ -253,7 +258,7 @@ def test_bad_configuration_and_inputs_name_the_argument():
     with pytest.raises(ValueError, match="target_layers"):
         UniqueSplatCfg(target_layers=("backbone.conv1",))
     with pytest.raises(ValueError, match="specific_layers"):
-        UniqueSplatCfg(specific_layers=("to_disparity.0",))
+        UniqueSplatCfg(target_layers=("to_gaussians.2",), specific_layers=("to_disparity.0",))
     with pytest.raises(ValueError, match="unknown UniqueSplatCfg keys"):
         UniqueSplatCfg.from_dict({"rank": 4})
     cfg = UniqueSplatCfg.from_dict({"primary": {"d_feature": 64}, "phi_channels": [8, 8, 8, 8]})

@@ -8,6 +8,14 @@ scene and the seed share. The interval resamples scenes and seeds together (a tw
 bootstrap: seeds with replacement, scenes with replacement, the mean of the resampled table),
 so it covers both sources of variation; with one seed it is the ordinary bootstrap over scenes.
 
+With few seeds that crossed bootstrap is too narrow (3 seeds: about half the width of an
+interval over the seeds themselves), so every row also has a seed-level interval: Student's t
+over the per-seed mean differences (seeds - 1 degrees of freedom). A row says better or worse
+only when the seed-level interval excludes 0 (with one seed: the bootstrap over scenes, and the
+row says so). ``label`` applies the pre-registered rule for PSNR: **supports** the paper at
+this scale when the mean is >= +0.3 dB and the seed-level lower bound > 0, **refutes** it
+when the seed-level upper bound < +0.1 dB, **inconclusive** otherwise.
+
 Examples:
     >>> import numpy as np
     >>> d = np.full((3, 50), 0.5)  # every scene and seed 0.5 dB better
@@ -32,6 +40,9 @@ log = logging.getLogger(__name__)
 METRICS = {"psnr": True, "ssim": True, "abs_rel": False}
 LABELS = {"baseline": "(a)", "agnostic": "(b)", "full": "(c)"}
 MIN_PAIRS = 5
+#: The pre-registered rule on PSNR (dB): supports when mean >= SUPPORT and the seed-level
+#: lower bound > 0; refutes when the seed-level upper bound < REFUTE.
+SUPPORT, REFUTE = 0.3, 0.1
 
 
 @dataclass(frozen=True)
@@ -47,17 +58,61 @@ class Comparison:
     scenes: int
     seeds: int
     better_fraction: float  # fraction of (seed, scene) pairs where the variant is better
+    seed_low: float = float("nan")  # 95% t interval over the per-seed means (>= 2 seeds)
+    seed_high: float = float("nan")
+
+    @property
+    def decisive(self) -> tuple[float, float]:
+        """The interval a verdict is read from: the seed-level one with >= 2 seeds, the
+        bootstrap over scenes with one."""
+        return (self.seed_low, self.seed_high) if self.seeds >= 2 else (self.low, self.high)
 
     @property
     def verdict(self) -> str:
-        """'better' / 'worse' when the interval excludes 0 (in the metric's good direction),
-        else 'no difference shown'; 'too few scenes' under ``MIN_PAIRS`` paired values (a
-        bootstrap of one or two values has no meaningful interval)."""
+        """'better' / 'worse' when the seed-level interval excludes 0 (in the metric's good
+        direction), else 'no difference shown'; with one seed the bootstrap over scenes
+        decides and the verdict says "(one seed)"; 'too few scenes' under ``MIN_PAIRS``
+        paired values (a bootstrap of one or two values has no meaningful interval)."""
         if self.scenes * self.seeds < MIN_PAIRS:
             return "too few scenes"
-        good = self.low > 0 if METRICS[self.metric] else self.high < 0
-        bad = self.high < 0 if METRICS[self.metric] else self.low > 0
-        return "better" if good else "worse" if bad else "no difference shown"
+        low, high = self.decisive
+        good = low > 0 if METRICS[self.metric] else high < 0
+        bad = high < 0 if METRICS[self.metric] else low > 0
+        word = "better" if good else "worse" if bad else "no difference shown"
+        return word if self.seeds >= 2 else f"{word} (one seed)"
+
+    @property
+    def label(self) -> str:
+        """The pre-registered rule (PSNR rows, >= 2 seeds): 'supports' / 'refutes' /
+        'inconclusive'; '' for other metrics, 'needs >= 2 seeds' with one."""
+        if self.metric != "psnr":
+            return ""
+        if self.seeds < 2:
+            return "needs >= 2 seeds"
+        if self.mean >= SUPPORT and self.seed_low > 0:
+            return "supports"
+        if self.seed_high < REFUTE:
+            return "refutes"
+        return "inconclusive"
+
+
+def seed_interval(diffs: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """Student's t interval of the mean over the per-seed means of ``diffs`` [seeds, scenes]
+    (NaN entries left out of each seed's mean): what a new training seed would give, the
+    scenes held fixed. NaN with one seed (no spread to estimate)."""
+    from scipy.stats import t as student_t  # only here (import time)
+
+    diffs = np.asarray(diffs, dtype=np.float64)
+    if diffs.ndim != 2 or diffs.size == 0:
+        raise ValueError(f"diffs must be a non-empty [seeds, scenes] array, got {diffs.shape}")
+    with np.errstate(invalid="ignore"):
+        means = np.nanmean(diffs, 1)
+    means = means[~np.isnan(means)]
+    if means.size < 2:
+        return float("nan"), float("nan")
+    half = student_t.ppf(0.5 + level / 2, means.size - 1) * means.std(ddof=1) / np.sqrt(
+        means.size)
+    return float(means.mean() - half), float(means.mean() + half)
 
 
 def bootstrap_interval(diffs: np.ndarray, samples: int = 10_000, seed: int = 0,
@@ -123,19 +178,23 @@ def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline"
                 valid = d[~np.isnan(d)]
                 rows.append(Comparison(
                     split, metric, variant, float(valid.mean()), lo, hi, len(keys), len(ts),
-                    float(((valid > 0) if higher else (valid < 0)).mean())))
+                    float(((valid > 0) if higher else (valid < 0)).mean()),
+                    *seed_interval(d)))
     return rows
 
 
 def table(rows: list[Comparison]) -> str:
     """The verdict as a Markdown table."""
-    lines = ["| split | metric | difference | mean | 95% interval | scenes x seeds | "
-             "better in | verdict |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| split | metric | difference | mean | 95% bootstrap (scenes x seeds) | "
+             "95% seed-level t | scenes x seeds | better in | verdict | rule (PSNR) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        seed = (f"[{r.seed_low:+.3f}, {r.seed_high:+.3f}]" if r.seeds >= 2 else
+                "(one seed)")
         lines.append(
             f"| {r.split} | {r.metric} | {LABELS.get(r.variant, r.variant)} - (a) | "
-            f"{r.mean:+.3f} | [{r.low:+.3f}, {r.high:+.3f}] | {r.scenes} x {r.seeds} | "
-            f"{100 * r.better_fraction:.0f}% | {r.verdict} |")
+            f"{r.mean:+.3f} | [{r.low:+.3f}, {r.high:+.3f}] | {seed} | {r.scenes} x {r.seeds} | "
+            f"{100 * r.better_fraction:.0f}% | {r.verdict} | {r.label} |")
     return "\n".join(lines)
 
 
@@ -156,6 +215,9 @@ def chart(rows: list[Comparison], path: str | os.PathLike) -> Path:
         labels = []
         for i, r in enumerate(sel):
             colour = f"C{variants.index(r.variant)}"
+            if r.seeds >= 2:  # the seed-level interval: thin and wider, behind
+                ax.errorbar(r.mean, i, xerr=[[r.mean - r.seed_low], [r.seed_high - r.mean]],
+                            fmt="none", color=colour, alpha=0.45, capsize=2, linewidth=0.8)
             ax.errorbar(r.mean, i, xerr=[[r.mean - r.low], [r.high - r.mean]], fmt="o",
                         color=colour, capsize=3)
             labels.append(f"{r.split} {LABELS.get(r.variant, r.variant)}")
@@ -163,7 +225,8 @@ def chart(rows: list[Comparison], path: str | os.PathLike) -> Path:
         ax.set_yticks(range(len(sel)), labels, fontsize=7)
         ax.invert_yaxis()
         better = "higher is better" if METRICS[metric] else "lower is better"
-        ax.set(xlabel=f"{metric}: variant - (a) ({better})")
+        ax.set(xlabel=f"{metric}: variant - (a) ({better})\n"
+                      "thick: bootstrap; thin: seed-level t")
         ax.grid(alpha=0.3, axis="x")
     fig.tight_layout()
     with atomic_open(path, "wb") as f:
@@ -174,4 +237,4 @@ def chart(rows: list[Comparison], path: str | os.PathLike) -> Path:
 
 def as_dicts(rows: list[Comparison]) -> list[dict]:
     """The comparisons as plain dicts (for JSON)."""
-    return [{**asdict(r), "verdict": r.verdict} for r in rows]
+    return [{**asdict(r), "verdict": r.verdict, "label": r.label} for r in rows]

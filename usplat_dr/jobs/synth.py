@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from usplat_dr.data.synth import synthesize
-from usplat_dr.data.synth.scenes import KINDS
+from usplat_dr.data.synth.scenes import APPEARANCES, KINDS
 from usplat_dr.jobs.arguments import at_least, non_negative_int, positive_int
 
 
@@ -20,6 +20,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="same seed, same bytes")
     p.add_argument("--kind", nargs="+", default=list(KINDS), choices=KINDS,
                    help="scene kinds, used round-robin")
+    p.add_argument("--appearance", default="diffuse", choices=APPEARANCES,
+                   help="diffuse: mostly matte surfaces, direct lighting under a constant sky; "
+                   "view-dependent: the same geometry with at least half of the surfaces "
+                   "glossy or metallic (floors always), a structured sky and path tracing, "
+                   "so that appearance changes with the viewpoint")
     p.add_argument("--spp", type=positive_int, default=64, help="Mitsuba samples per pixel")
     p.add_argument("--backend", default="llvm", choices=["llvm", "cuda"],
                    help="Mitsuba variant: llvm_ad_rgb (CPU) or cuda_ad_rgb")
@@ -42,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
                          kinds=tuple(args.kind), spp=args.spp, backend=args.backend,
                          stage=args.stage, previews=args.previews, progress=not args.quiet,
                          jobs=args.jobs or min(os.cpu_count() or 1, max(1, args.scenes // 4)),
-                         chunk_scenes=args.chunk_scenes)
+                         chunk_scenes=args.chunk_scenes, appearance=args.appearance)
     dt = time.perf_counter() - t0
     print(f"wrote {args.scenes} scenes x {args.frames} frames to {args.out} in {dt:.1f} s "
           f"({60 * args.scenes / dt:.1f} scenes/min)")

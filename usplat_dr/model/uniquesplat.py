@@ -61,12 +61,13 @@ class UniqueSplatCfg:
     primary: PrimaryNetworkCfg = field(default_factory=PrimaryNetworkCfg)
     variant: str = "full"
     # Layers whose weights the hypernetworks generate: W (H_a) for all of them, and W + Delta W
-    # (H_s) for ``specific_layers``. Delta W on the last Gaussian-head conv by default: its
-    # input is shared by all targets, so a target costs a rank-r convolution, not a head
-    # (BENCHMARKS.md: both convs per target cost (c)/(a) = 1.69 at 256x256 on our CPU,
-    # against 1.11).
-    target_layers: tuple[str, ...] = ("to_gaussians.0", "to_gaussians.2")
-    specific_layers: tuple[str, ...] = ("to_gaussians.2",)
+    # (H_s) for ``specific_layers``. By default every convolution of the predictor's two heads,
+    # as the paper has it ("integrated into the convolutional layers of the predictor" that
+    # outputs centre, opacity, covariance and colour): ``to_disparity`` (depth, opacity) and
+    # ``to_gaussians`` (colour, covariance, offsets). Fewer layers cost less per target
+    # (``train/bench_uniquesplat.py --layers``; BENCHMARKS.md "What view conditioning costs").
+    target_layers: tuple[str, ...] = INJECTABLE
+    specific_layers: tuple[str, ...] = INJECTABLE
     embed_dim: int = 512  # e_a and e_s (paper: 512)
     hyper_hidden: int = 32  # width of the two hidden layers of H_a and H_s
     # Delta W as a rank-r product per layer (None: a full Delta W per view; see

@@ -8,7 +8,7 @@ preview images (``<out>/previews/<key>.png``: colour above depth).
 
 Each scene record carries, besides the standard keys: ``depths`` (float16 [V, H, W],
 camera-space z, +inf on a miss), ``materials`` (uint8 [V, H, W]: 0 miss, 1 textured,
-2 textureless, 3 glossy), ``near_far`` (float32 [2]), ``tags`` (list of str) and ``mitsuba``
+2 textureless, 3 glossy, 4 metal), ``near_far`` (float32 [2]), ``tags`` (list of str) and ``mitsuba``
 (the scene description, re-renderable with ``render_spec`` at any resolution).
 """
 
@@ -25,14 +25,14 @@ from tqdm import tqdm
 
 from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras
 from usplat_dr.data.synth.render import render_spec
-from usplat_dr.data.synth.scenes import KINDS, make_spec
+from usplat_dr.data.synth.scenes import APPEARANCES, KINDS, make_spec
 from usplat_dr.data.synth.splits import SPLITS, scene_splits
 from usplat_dr.io import write_json
 from usplat_dr.io.images import colorize_depth, save_png
 
 log = logging.getLogger(__name__)
 
-__all__ = ["KINDS", "SPLITS", "make_spec", "render_spec", "scene_record", "synthesize"]
+__all__ = ["APPEARANCES", "KINDS", "SPLITS", "make_spec", "render_spec", "scene_record", "synthesize"]
 
 
 def scene_seed(seed: int, i: int) -> int:
@@ -91,14 +91,16 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
                resolution: tuple[int, int], seed: int = 0, kinds: tuple[str, ...] = KINDS,
                spp: int = 64, backend: str = "llvm", stage: str = "test",
                previews: int = 8, progress: bool = True, jobs: int = 1,
-               chunk_scenes: int | None = None) -> dict:
+               chunk_scenes: int | None = None, appearance: str = "diffuse") -> dict:
     """Render ``scenes`` procedural scenes of ``frames`` frames each (kinds round-robin) and
     write them as a dataset under ``out``. Deterministic: the same arguments give the same
     bytes on the LLVM backend, for any ``jobs`` (scenes rendered by that many worker
     processes, for machines where one Mitsuba process does not keep every core busy).
     Chunks hold up to 100 MB of scenes, and at most ``chunk_scenes`` scenes when given
     (training shards by scene, so any number of chunks feeds any number of ranks).
-    Returns the split summary (split -> number of scenes in it).
+    ``appearance``: ``"diffuse"`` or ``"view-dependent"`` (shiny surfaces, a structured sky,
+    path tracing: ``usplat_dr.data.synth.scenes``); the same seed gives the same geometry and
+    cameras in both. Returns the split summary (split -> number of scenes in it).
 
     Examples:
         >>> import tempfile
@@ -117,6 +119,8 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
             raise ValueError(f"kinds must be among {KINDS}, got {k!r}")
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1 (worker processes), got {jobs}")
+    if appearance not in APPEARANCES:
+        raise ValueError(f"appearance must be one of {APPEARANCES}, got {appearance!r}")
     if chunk_scenes is not None and chunk_scenes < 1:
         raise ValueError(f"chunk_scenes must be >= 1 (or None: chunks of up to 100 MB), got "
                          f"{chunk_scenes}")
@@ -127,13 +131,14 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     if progress:
         bar = tqdm(total=scenes, desc="usplat synth", unit="scene")
     seeds = [scene_seed(seed, i) for i in range(scenes)]
-    specs = [make_spec(kinds[i % len(kinds)], s, frames) for i, s in enumerate(seeds)]
+    specs = [make_spec(kinds[i % len(kinds)], s, frames, appearance)
+             for i, s in enumerate(seeds)]
     work = [(spec, (h, w), spp, s, backend) for spec, s in zip(specs, seeds)]
     with ChunkWriter(out, stage, chunk_bytes=100_000_000, chunk_scenes=chunk_scenes) as writer:
         for i, (spec, s, rendered) in enumerate(zip(specs, seeds, _rendered(work, jobs))):
             images, depths, materials, intr = rendered
             kind = spec["kind"]
-            key = f"{kind}_{seed}_{i:05d}"
+            key = f"{kind}_{seed}_{i:05d}" + ("_vd" if appearance == "view-dependent" else "")
             writer.add(scene_record(key, spec, images, depths, materials, intr))
             entries, stats = scene_splits(np.asarray(spec["cameras"]["c2w"]), intr, depths,
                                           materials, np.random.default_rng(s))
@@ -154,6 +159,8 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
                  "kinds": list(kinds), "spp": spp, "stage": stage}
     if chunk_scenes is not None:  # (absent by default: earlier sets keep their bytes)
         arguments["chunk_scenes"] = chunk_scenes
+    if appearance != "diffuse":  # (likewise)
+        arguments["appearance"] = appearance
     write_json(out / "synth.json", arguments)
     log.info("wrote %d scenes to %s; scenes per split: %s", scenes, out, summary)
     return summary

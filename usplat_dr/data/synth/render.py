@@ -1,7 +1,8 @@
 """Rendering scene descriptions with Mitsuba 3: colour, exact depth and per-pixel materials.
 
 Colour: Mitsuba's ``direct`` integrator (emitter and BSDF sampling, no interreflection, so
-the noise is low at modest sample counts), box pixel filter, linear radiance converted to sRGB
+the noise is low at modest sample counts; the view-dependent appearance names ``path`` in its
+description, so that shiny surfaces reflect the scene), box pixel filter, linear radiance converted to sRGB
 and rounded to uint8. Depth: one ray per pixel centre, built from *our* intrinsics and OpenCV
 extrinsics (not from Mitsuba's sensor), intersected with the Mitsuba scene; camera-space z,
 ``+inf`` where the ray misses. The colour image comes from Mitsuba's sensor; the tests pin that
@@ -13,12 +14,13 @@ import math
 import numpy as np
 
 from usplat_dr.data.synth.scenes import terrain_grid
-from usplat_dr.data.synth.textures import make_texture
+from usplat_dr.data.synth.textures import make_environment, make_texture
 from usplat_dr.geometry.cameras import opencv_c2w_to_mitsuba, pixel_directions
 
 # Material classes in the per-pixel material map.
-MISS, TEXTURED, PLAIN, GLOSSY = 0, 1, 2, 3
-MATERIAL_CODES = {"textured": TEXTURED, "plain": PLAIN, "glossy": GLOSSY}
+MISS, TEXTURED, PLAIN, GLOSSY, CONDUCTOR = 0, 1, 2, 3, 4
+MATERIAL_CODES = {"textured": TEXTURED, "plain": PLAIN, "glossy": GLOSSY,
+                  "conductor": CONDUCTOR}
 
 _VARIANTS = {"llvm": "llvm_ad_rgb", "cuda": "cuda_ad_rgb"}
 
@@ -47,18 +49,29 @@ def intrinsics_for(fov_x_deg: float, resolution: tuple[int, int]) -> np.ndarray:
     return np.array([[fx, 0, 0.5], [0, fx * w / h, 0.5], [0, 0, 1]])
 
 
+def _texture(mi, material: dict) -> dict:
+    s = material.get("uv_scale", 1.0)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(make_texture(material["texture"])),
+            "filter_type": "bilinear", "wrap_mode": "repeat",
+            "to_uv": mi.ScalarTransform4f().scale([s, s, 1])}
+
+
 def _bsdf(mi, material: dict) -> dict:
     if material["type"] == "plain":
         return {"type": "diffuse", "reflectance": {"type": "rgb", "value": material["rgb"]}}
     if material["type"] == "glossy":
-        return {"type": "roughplastic", "distribution": "ggx", "alpha": material["roughness"],
-                "diffuse_reflectance": {"type": "rgb", "value": material["rgb"]}}
+        d = {"type": "roughplastic", "distribution": "ggx", "alpha": material["roughness"],
+             "diffuse_reflectance": (_texture(mi, material) if "texture" in material else
+                                     {"type": "rgb", "value": material["rgb"]})}
+        if "ior" in material:
+            d["int_ior"] = material["ior"]
+        return d
+    if material["type"] == "conductor":  # a perfect conductor, tinted: a rough metal
+        return {"type": "roughconductor", "material": "none", "distribution": "ggx",
+                "alpha": material["roughness"],
+                "specular_reflectance": {"type": "rgb", "value": material["rgb"]}}
     if material["type"] == "textured":
-        tex = make_texture(material["texture"])
-        s = material.get("uv_scale", 1.0)
-        return {"type": "diffuse", "reflectance": {
-            "type": "bitmap", "bitmap": mi.Bitmap(tex), "filter_type": "bilinear",
-            "wrap_mode": "repeat", "to_uv": mi.ScalarTransform4f().scale([s, s, 1])}}
+        return {"type": "diffuse", "reflectance": _texture(mi, material)}
     raise ValueError(f"unknown material type {material['type']!r}")
 
 
@@ -91,8 +104,8 @@ def mitsuba_dict(spec: dict, resolution: tuple[int, int], spp: int, backend: str
     """The Mitsuba scene dict of a description, with one perspective sensor per camera."""
     mi = set_variant(backend)
     h, w = resolution
-    d: dict = {"type": "scene", "integrator": {"type": "direct", "emitter_samples": 1,
-                                               "bsdf_samples": 1}}
+    d: dict = {"type": "scene", "integrator": spec.get("integrator") or {
+        "type": "direct", "emitter_samples": 1, "bsdf_samples": 1}}
     for s in spec["shapes"]:
         if s["type"] == "terrain":
             d[s["name"]] = _terrain_mesh(mi, s)
@@ -119,6 +132,9 @@ def mitsuba_dict(spec: dict, resolution: tuple[int, int], spp: int, backend: str
         elif light["type"] == "directional":
             d[f"light{i}"] = {"type": "directional", "direction": light["direction"],
                               "irradiance": {"type": "rgb", "value": light["irradiance"]}}
+        elif light["type"] == "envmap":
+            d[f"light{i}"] = {"type": "envmap", "scale": light["scale"],
+                              "bitmap": mi.Bitmap(make_environment(light))}
         elif light["type"] == "constant":
             d[f"light{i}"] = {"type": "constant", "radiance": {"type": "rgb",
                                                                "value": light["radiance"]}}
@@ -177,7 +193,7 @@ def render_spec(spec: dict, resolution: tuple[int, int], spp: int = 64, seed: in
                 backend: str = "llvm", frames: list[int] | None = None):
     """Render a scene description: uint8 sRGB images [V, H, W, 3], float32 depths [V, H, W]
     (camera-space z, +inf on a miss), uint8 material maps [V, H, W] (``MISS``, ``TEXTURED``,
-    ``PLAIN``, ``GLOSSY``) and normalised intrinsics [3, 3]."""
+    ``PLAIN``, ``GLOSSY``, ``CONDUCTOR``) and normalised intrinsics [3, 3]."""
     mi = set_variant(backend)
     scene = mi.load_dict(mitsuba_dict(spec, resolution, spp, backend))
     sensors = scene.sensors()

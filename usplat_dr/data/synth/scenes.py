@@ -12,8 +12,18 @@ re-rendered at another resolution (``usplat_dr.data.synth.render.render_spec``):
 
 World: +Y up, metres. Cameras: OpenCV camera-to-world (see ``usplat_dr.geometry.cameras``).
 Materials: ``{"type": "textured", "texture": spec, "uv_scale": s}`` (diffuse, procedural
-texture), ``{"type": "plain", "rgb": [...]}`` (textureless diffuse) or ``{"type": "glossy",
-"rgb": [...], "roughness": a}`` (rough plastic: view-dependent highlights).
+texture), ``{"type": "plain", "rgb": [...]}`` (textureless diffuse), ``{"type": "glossy",
+"rgb": [...], "roughness": a}`` (rough plastic: view-dependent highlights; optionally a
+``texture`` and ``uv_scale`` instead of ``rgb`` and an ``ior``) or ``{"type": "conductor",
+"rgb": [...], "roughness": a}`` (a tinted rough metal: it shows what surrounds it).
+
+Appearance (``make_spec(..., appearance=)``): ``"diffuse"`` (the default: the scenes above,
+Mitsuba's ``direct`` integrator under a constant sky) or ``"view-dependent"``: the same
+geometry and cameras (the same seed), with at least half of the surfaces glossy or metallic
+(floors, terrain and turntables always), a structured environment map instead of the constant
+sky, and Mitsuba's ``path`` integrator (``max_depth`` 4), so that shiny surfaces reflect the
+scene and the sky. Its description has ``"appearance"``, ``"integrator"`` and an ``envmap``
+light; tags gain ``view_dependent``.
 """
 
 import math
@@ -25,7 +35,10 @@ from usplat_dr.data.synth.textures import random_texture_spec
 from usplat_dr.geometry.cameras import look_at
 
 KINDS = ("indoor", "outdoor", "object")
+APPEARANCES = ("diffuse", "view-dependent")
 SPEC_VERSION = 1
+#: Shapes that are always shiny in the view-dependent appearance (the ground of each kind).
+GROUND = ("floor", "terrain", "turntable")
 
 
 # ---- Transforms (4x4, column vectors) ----
@@ -336,22 +349,82 @@ def object_turntable(rng: np.random.Generator, frames: int) -> dict:
 BUILDERS = {"indoor": indoor_room, "outdoor": outdoor_terrain, "object": object_turntable}
 
 
-def make_spec(kind: str, seed: int, frames: int) -> dict:
-    """The description of one procedural scene (deterministic for ``(kind, seed, frames)``).
+def _shiny(rng: np.random.Generator, material: dict, metal: bool) -> dict:
+    """A glossy (clear-coated, keeping a texture) or metallic version of ``material``."""
+    roughness = round(float(rng.uniform(0.03, 0.15)), 3)
+    if metal:
+        tint = (0.55 + 0.4 * rng.random(3)).round(3).tolist()
+        return {"type": "conductor", "rgb": tint, "roughness": roughness}
+    out = {"type": "glossy", "roughness": roughness, "ior": round(float(rng.uniform(1.6, 2.2)), 3)}
+    if material["type"] == "textured":
+        out.update(texture=material["texture"], uv_scale=material.get("uv_scale", 1.0))
+    else:
+        out["rgb"] = material.get("rgb", (0.2 + 0.6 * rng.random(3)).round(3).tolist())
+    return out
+
+
+def environment_spec(rng: np.random.Generator, strength: float) -> dict:
+    """A structured sky (``textures.make_environment``): gradient, sun glow, bright panels."""
+    return {"type": "envmap", "seed": int(rng.integers(2**31)), "res": [32, 64],
+            "scale": round(float(strength), 3)}
+
+
+def view_dependent(spec: dict, rng: np.random.Generator) -> dict:
+    """The view-dependent appearance of a description (module docstring): shapes and
+    cameras unchanged, materials, sky and integrator replaced."""
+    shapes = [dict(s) for s in spec["shapes"]]
+    n = len(shapes)
+    ground = [i for i, s in enumerate(shapes) if s["name"] in GROUND]
+    others = [i for i in range(n) if i not in ground]
+    rng.shuffle(others)
+    # at least half of the surfaces, the ground always; the rest at random (70 %)
+    need = max(0, -(-n // 2) - len(ground))
+    chosen = set(ground) | set(others[:need]) | {i for i in others[need:] if rng.random() < 0.7}
+    for i in sorted(chosen):
+        metal = shapes[i]["name"] not in GROUND and rng.random() < 0.4
+        shapes[i]["material"] = _shiny(rng, shapes[i]["material"], metal)
+    lights = []
+    for light in spec["lights"]:
+        if light["type"] == "constant":  # the constant sky becomes a structured one
+            lights.append(environment_spec(rng, 1.3 * float(np.mean(light["radiance"]))))
+        elif light["type"] == "area":
+            # Twice the size at a quarter of the radiance (the same power): small bright
+            # lamps seen through glossy bounces are what makes a path tracer's fireflies.
+            to_world = np.asarray(light["to_world"]) @ scale([2.0, 2.0, 1.0])
+            lights.append({**light, "to_world": np.round(to_world, 6).tolist(),
+                           "radiance": round(light["radiance"] / 4, 3)})
+        else:
+            lights.append(light)
+    return {**spec, "shapes": shapes, "lights": lights, "appearance": "view-dependent",
+            "integrator": {"type": "path", "max_depth": 4},
+            "tags": [*spec["tags"], "view_dependent"]}
+
+
+def make_spec(kind: str, seed: int, frames: int, appearance: str = "diffuse") -> dict:
+    """The description of one procedural scene (deterministic for ``(kind, seed, frames,
+    appearance)``; both appearances of a seed share shapes and cameras).
 
     Examples:
         >>> spec = make_spec("indoor", 0, 4)
         >>> spec["kind"], len(spec["cameras"]["c2w"]), spec == make_spec("indoor", 0, 4)
         ('indoor', 4, True)
+        >>> shiny = make_spec("indoor", 0, 4, "view-dependent")
+        >>> shiny["cameras"] == spec["cameras"], shiny["integrator"]["type"]
+        (True, 'path')
     """
     if kind not in BUILDERS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    if appearance not in APPEARANCES:
+        raise ValueError(f"appearance must be one of {APPEARANCES}, got {appearance!r}")
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     rng = np.random.default_rng([seed, KINDS.index(kind)])
     s = BUILDERS[kind](rng, frames)
-    return {"version": SPEC_VERSION, "kind": kind, "seed": seed, "shapes": s["shapes"],
+    spec = {"version": SPEC_VERSION, "kind": kind, "seed": seed, "shapes": s["shapes"],
             "lights": s["lights"],
             "cameras": {"c2w": [np.round(c, 7).tolist() for c in s["cameras"]],
                         "fov_x_deg": round(s["fov_x_deg"], 4)},
             "near_far": s["near_far"], "tags": s["tags"]}
+    if appearance == "view-dependent":  # its own random stream: the geometry stays the same
+        spec = view_dependent(spec, np.random.default_rng([seed, KINDS.index(kind), 1]))
+    return spec

@@ -53,6 +53,10 @@ def injected_conv(x: Tensor, per_target: bool, weight: Tensor, bias: Tensor,
                      groups=groups)
         return _to_targets(y.permute(0, 2, 3, 1).reshape(v, h, w, b * n, o), b, n), True
     if delta.full is not None:  # full-rank Delta W: one convolution grouped by target
+        if delta.bias.ndim != 2:
+            raise ValueError(f"a full Delta W takes a bias change per target [B N, O], got "
+                             f"{list(delta.bias.shape)} (a bias per context view needs the "
+                             f"rank-r form)")
         if not per_target:  # each scene's input once per target
             xin = xin.permute(0, 2, 3, 1).view(v, h, w, b, 1, i).expand(v, h, w, b, n, i)
             xin = xin.reshape(v, h, w, b * n * i).permute(0, 3, 1, 2)
@@ -75,7 +79,10 @@ def injected_conv(x: Tensor, per_target: bool, weight: Tensor, bias: Tensor,
         out += base.reshape(b, n, v, h * w, o)
     else:
         out += base[:, None]
-    out += (bias + delta.bias).view(b, n, 1, 1, o)
+    if delta.bias.ndim == 3:  # a bias change per (target, context view): [B N, V, O]
+        out += (bias + delta.bias).view(b, n, v, 1, o)
+    else:
+        out += (bias + delta.bias).view(b, n, 1, 1, o)
     return out.view(b, n, v, h, w, o), True
 
 
