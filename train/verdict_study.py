@@ -9,7 +9,8 @@ of them on the same held-out scenes, and compare paired per-scene differences wi
 
 Each run trains and evaluates in its own process with one thread (``--jobs`` at a time) and
 is resumable: a second call skips finished runs and resumes killed ones. Writes
-``<out>/verdict.md``, ``verdict.json``, ``verdict.png`` and ``runs.json`` (steps and seconds
+``<out>/verdict.md``, ``verdict.json``, ``verdict.png``, ``labels.json`` (per split, (c) - (a)
+on PSNR with both intervals and the pre-registered rule's label) and ``runs.json`` (steps and seconds
 per step of every run: the equal-wall-time view); ``--also-eval`` repeats the comparison on
 more held-out sets (``verdict_<set>.md``), the same runs on other scenes.
 """
@@ -213,6 +214,14 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
                                                "rows": as_dicts(rows),
                                                "equal_wall_time_rows": as_dicts(wall_rows)})
     chart(rows, out / f"verdict{suffix}.png")
+    # the pre-registered rule's label per split, (c) - (a) on PSNR (checkpoints/verdict.json
+    # holds these for the shipped protocol; the demo prints them)
+    write_json(out / f"labels{suffix}.json", [
+        {"held_out": where, "split": r.split, "arm": arm, "mean": r.mean, "low": r.low,
+         "high": r.high, "seed_low": r.seed_low, "seed_high": r.seed_high, "seeds": r.seeds,
+         "scenes": r.scenes, "label": r.label}
+        for arm, rs in (("equal steps", rows), ("equal wall time", wall_rows))
+        for r in rs if r.metric == "psnr" and r.variant == "full"])
     text = (f"# Verdict: {len(args.seeds)} seeds x {args.steps} fine-tuning steps from "
             f"`{args.init}`, evaluated on {where}\n\n## Equal steps\n\n{table(rows)}\n\n")
     if wall_rows:

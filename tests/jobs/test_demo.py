@@ -65,6 +65,7 @@ def test_demo_quick_end_to_end(wheel_demo):
     assert "| (a) primary network `tiny_baseline_continued`" in text
     assert "| (c) UniqueSplat `tiny_full`" in text
     assert "## Verdict on view conditioning" in text and "| standard | psnr | (c) - (a) |" in text
+    assert "pre-registered multi-seed verdict" in text  # checkpoints/verdict.json, from the wheel
     assert (tmp_path / "training_curves.png").is_file() and (tmp_path / "verdict.png").is_file()
     for variant in SHIPPED:
         s = json.loads((tmp_path / f"eval_shipped_{variant}" / "summary.json").read_text())
@@ -110,3 +111,18 @@ def test_demo_quick_end_to_end(wheel_demo):
     assert (tmp_path / "bench" / "bench.png").is_file()
     summary = json.loads((tmp_path / "bench" / "summary.json").read_text())
     assert summary["pruning"]["cull"]["safe"]
+
+
+def test_registered_verdict_lines():
+    from usplat_dr.jobs.report import registered_lines
+
+    registered = {"date": "2026-11-25", "rule": "supports if ...", "sets": [
+        {"set": "standard (seed 5000)", "arm": "equal steps", "mean": -0.05, "low": -0.1,
+         "high": 0.01, "seed_low": -0.2, "seed_high": 0.08, "seeds": 3, "scenes": 60,
+         "label": "refutes"},
+        {"set": "cross-kind", "label": "not run", "why": "no (a) trained on one kind yet"}]}
+    text = "\n".join(registered_lines(registered))
+    assert "| standard (seed 5000) | equal steps | -0.050 | [-0.100, +0.010] | [-0.200, +0.080] " \
+           "| 3 x 60 | **refutes** |" in text
+    assert "| cross-kind | | | | | | not run: no (a) trained on one kind yet |" in text
+    assert "No multi-seed verdict" in registered_lines(None)[0]

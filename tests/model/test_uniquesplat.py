@@ -2,6 +2,7 @@
 specialisation, gradients through every part, the cached W, rendering per target, the
 parameter count of the paper configuration, and input errors."""
 
+import dataclasses
 import logging
 import math
 
@@ -368,3 +369,23 @@ def test_three_context_views_render_and_every_view_counts(variant):
     changed = images.clone()
     changed[:, 2] = torch.rand(1, 3, 32, 32, generator=torch.Generator().manual_seed(2))
     assert (render(changed, [0, 1, 2]).color - out.color).abs().max() > 1e-2
+
+
+def test_colour_sh_degree_zero_makes_colour_view_independent():
+    # The control for view-dependent colour: the same weights, the coefficients above the
+    # chosen degree masked to exactly zero, everything else unchanged (bit for bit: the mask
+    # multiplies, and 0.1 * 0.25^l or 1 are the same factors in both models).
+    torch.manual_seed(4)
+    model = UniqueSplat.from_preset("tiny", variant="baseline").eval()
+    cfg = dataclasses.replace(model.cfg, primary=dataclasses.replace(model.cfg.primary,
+                                                                     colour_sh_degree=0))
+    flat = UniqueSplat(cfg).eval()
+    flat.load_state_dict(model.state_dict())
+    args = scene(seed=5)
+    with torch.no_grad():
+        g, f = model(*args, render=False).gaussians, flat(*args, render=False).gaussians
+    assert torch.equal(f.harmonics[..., 0], g.harmonics[..., 0])
+    assert (f.harmonics[..., 1:] == 0).all() and (g.harmonics[..., 1:] != 0).any()
+    assert torch.equal(f.means, g.means) and torch.equal(f.opacities, g.opacities)
+    with pytest.raises(ValueError, match="colour_sh_degree"):
+        dataclasses.replace(model.cfg.primary, colour_sh_degree=3)

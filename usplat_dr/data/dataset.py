@@ -352,11 +352,16 @@ class ChunkDataset(IterableDataset):
             }
             if "depths" in scene:
                 v["depth"] = scene["depths"][indices].float()
+            if "materials" in scene:  # synthetic sets: material codes, as floats (resizing)
+                v["material"] = scene["materials"][indices].float()
             return v
 
         example = {"context": views(ctx), "target": views(tgt), "scene": run or key}
-        if "depths" in scene and tuple(scene["depths"].shape[1:]) != shapes.pop():
+        shape = shapes.pop()
+        if "depths" in scene and tuple(scene["depths"].shape[1:]) != shape:
             return skip("bad depth", "depth maps and images differ in shape")
+        if "materials" in scene and tuple(scene["materials"].shape[1:]) != shape:
+            return skip("malformed scene", "material maps and images differ in shape")
         if self.cfg.make_baseline_1:
             try:
                 example, _ = normalize_baseline(example, self.cfg.baseline_scale_bounds)

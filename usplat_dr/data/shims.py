@@ -3,7 +3,8 @@
 An example is pixelSplat's dict: ``{"context": views, "target": views, "scene": key}`` where
 ``views`` holds ``extrinsics`` [V, 4, 4] (OpenCV c2w), ``intrinsics`` [V, 3, 3] (normalised),
 ``image`` [V, 3, H, W] (float in [0, 1]), ``near`` [V], ``far`` [V], ``index`` [V] (int64 frame
-indices) and, for synthetic data, ``depth`` [V, H, W] (camera-space z, +inf on a miss).
+indices) and, for synthetic data, ``depth`` [V, H, W] (camera-space z, +inf on a miss) and
+``material`` [V, H, W] (``usplat synth``'s material codes as floats; resized like depth).
 """
 
 import math
@@ -81,11 +82,13 @@ def rescale_and_crop(
 
 
 def crop_views(views: dict, shape: tuple[int, int]) -> dict:
-    """``rescale_and_crop`` applied to one side of an example (image and, if present, depth)."""
+    """``rescale_and_crop`` applied to one side of an example (image and, if present, depth
+    and material maps)."""
     views = dict(views)
     image, intrinsics = rescale_and_crop(views["image"], views["intrinsics"], shape)
-    if "depth" in views:
-        views["depth"], _ = rescale_and_crop(views["depth"], views["intrinsics"], shape)
+    for key in ("depth", "material"):
+        if key in views:
+            views[key], _ = rescale_and_crop(views[key], views["intrinsics"], shape)
     views["image"], views["intrinsics"] = image, intrinsics
     return views
 
@@ -98,8 +101,9 @@ def reflect_views(views: dict) -> dict:
     reflect = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
     views["extrinsics"] = reflect @ views["extrinsics"] @ reflect
     views["image"] = views["image"].flip(-1)
-    if "depth" in views:
-        views["depth"] = views["depth"].flip(-1)
+    for key in ("depth", "material"):
+        if key in views:
+            views[key] = views[key].flip(-1)
     k = views["intrinsics"].clone()
     k[:, 0, 2] = 1.0 - k[:, 0, 2]
     views["intrinsics"] = k

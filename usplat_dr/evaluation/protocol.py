@@ -3,7 +3,9 @@ frames from an evaluation index, metrics per target view, the mean over a scene'
 then the mean over scenes. PSNR on clipped images, SSIM with scikit-image (window 11,
 Gaussian weights, data range 1), LPIPS-VGG when its weight files are given (else reported as
 unavailable, never as a number); on synthetic sets also depth metrics against the ground
-truth (AbsRel, RMSE, delta < 1.25 on pixels the prediction covers, alpha > 0.5).
+truth (AbsRel, RMSE, delta < 1.25 on pixels the prediction covers, alpha > 0.5) and PSNR on the
+pixels of shiny (glossy or metallic) and of matte surfaces (``psnr_shiny``, ``psnr_matte``:
+the MSE over a target's pixels of that class; NaN where a target has none).
 
 Writes ``per_scene.csv``, ``summary.json`` (per split, plus parameters, inference time per
 scene and peak memory) and, for the first ``images_per_split`` scenes of each split, a PNG of
@@ -62,6 +64,26 @@ def depth_metrics(pred_depth: torch.Tensor, alpha: torch.Tensor, gt: torch.Tenso
             "delta1": (ratio < 1.25).double().mean().item()}
 
 
+#: Material codes (``usplat_dr.data.synth.render``) of the masked PSNRs.
+SHINY, MATTE = (3, 4), (1, 2)
+
+
+def masked_psnr(pred: torch.Tensor, gt: torch.Tensor, material: torch.Tensor,
+                codes: tuple[int, ...]) -> list[float]:
+    """PSNR per target ([N, 3, H, W] images in [0, 1], clipped) over the pixels whose
+    ``material`` code [N, H, W] is one of ``codes``; NaN for a target without such pixels."""
+    mask = torch.zeros_like(material, dtype=torch.bool)
+    for c in codes:
+        mask |= material == c
+    err = (pred.clamp(0, 1) - gt).square().mean(1)  # [N, H, W]
+    out = []
+    for e, m in zip(err, mask):
+        n = int(m.sum())
+        out.append(float("nan") if n == 0 else
+                   -10.0 * torch.log10(e[m].double().mean().clamp(min=1e-12)).item())
+    return out
+
+
 def peak_memory_gib(device: torch.device) -> float:
     """The process's peak memory so far: CUDA's allocator peak, or the peak RSS on CPU."""
     if device.type == "cuda":
@@ -106,6 +128,10 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
                                     batch["target"]["depth"][0, j]) for j in range(len(gt))]
                 for key in ("abs_rel", "rmse", "delta1"):
                     row[key] = nan_mean([d[key] for d in dm])
+            if "material" in batch["target"]:
+                material = batch["target"]["material"][0].to(device)
+                for key, codes in (("psnr_shiny", SHINY), ("psnr_matte", MATTE)):
+                    row[key] = nan_mean(masked_psnr(pred, gt, material, codes))
             rows.append(row)
             scenes.append(row)
             if i < images_per_split:
@@ -117,7 +143,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         if bar is not None:
             bar.close()
         metrics = {}
-        for key in ("psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1"):
+        for key in ("psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1", "psnr_shiny",
+                    "psnr_matte"):
             vals = [r[key] for r in scenes if key in r]
             metrics[key] = nan_mean(vals) if vals else None
         if lpips is None:
@@ -136,7 +163,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         image_shape=list(dataset.get("image_shape", ())),
         time_per_scene_s=statistics.median(steady) if steady else None,
         peak_memory_gib=peak_memory_gib(device), device=str(device))
-    fields = ["split", "scene", "targets", "psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1"]
+    fields = ["split", "scene", "targets", "psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1",
+              "psnr_shiny", "psnr_matte"]
     with open(out / "per_scene.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()

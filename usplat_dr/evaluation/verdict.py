@@ -37,7 +37,7 @@ from usplat_dr.io import atomic_open
 log = logging.getLogger(__name__)
 
 #: Metrics compared, and whether higher is better.
-METRICS = {"psnr": True, "ssim": True, "abs_rel": False}
+METRICS = {"psnr": True, "ssim": True, "abs_rel": False, "psnr_shiny": True}
 LABELS = {"baseline": "(a)", "agnostic": "(b)", "full": "(c)"}
 MIN_PAIRS = 5
 #: The pre-registered rule on PSNR (dB): supports when mean >= SUPPORT and the seed-level

@@ -34,6 +34,7 @@ import numpy as np
 from usplat_dr.data.chunks import cameras_to_matrices, decode_image, read_chunk, stage_chunks
 from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY, PLAIN, TEXTURED
 from usplat_dr.geometry.cameras import pixel_directions
+from usplat_dr.io.images import save_png
 
 #: Material classes of the meter: name -> material codes of ``usplat synth``'s maps.
 CLASSES = {"diffuse": (TEXTURED, PLAIN), "glossy": (GLOSSY,), "metal": (CONDUCTOR,)}
@@ -145,8 +146,6 @@ def write_error_images(root: str | os.PathLike, index: dict, out: str | os.PathL
                        scenes: int = 4, stage: str = "test") -> list[Path]:
     """Per scene a PNG: target, context warped into it, their absolute difference (x4) and
     the material map, for the first target and context of ``scenes`` scenes."""
-    from usplat_dr.io.images import save_png
-
     palette = np.array([[0, 0, 0], [0.55, 0.55, 0.55], [0.8, 0.8, 0.8], [0.2, 0.5, 1.0],
                         [1.0, 0.7, 0.1]])  # miss, textured, plain, glossy, metal
     written = []

@@ -50,6 +50,13 @@ CHECKPOINTS = next((p for p in (Path(__file__).parents[1] / "checkpoints",
 FINETUNE_LR = 2e-4
 
 
+def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
+    """The multi-seed verdict shipped beside the checkpoints (``verdict.json``: the
+    pre-registered rule's label per held-out set), or None where there is none."""
+    path = root / "verdict.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
 def shipped_checkpoints(root: Path = CHECKPOINTS) -> dict[str, Path]:
     """``{manifest name: file}`` of the shipped checkpoints, checked against the manifest."""
     manifest = root / "manifest.json"

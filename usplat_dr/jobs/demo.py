@@ -37,6 +37,7 @@ from usplat_dr.jobs.budgets import (
     SHIPPED,
     Budget,
     ensure_data,
+    registered_verdict,
     shipped_checkpoints,
     training_config,
 )
@@ -121,7 +122,8 @@ def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int =
     report = write_report(out, b, budget, summaries, timings, worst, bench,
                           {v: stability(r) for v, r in runs.items()}, verdict, tuned,
                           provenance([data]), {n: manifest[n] for n in
-                                               (BASE, *SHIPPED.values())})
+                                               (BASE, *SHIPPED.values())},
+                          registered_verdict(checkpoints))
     print(f"report: {report}")
     return report
 

@@ -16,22 +16,28 @@ from usplat_dr.model.sh_rotation import sh_rotation_matrix
 from usplat_dr.model.types import Gaussians
 
 
-def sh_mask(d_sh: int) -> Tensor:
-    """1 for degree 0, 0.1 * 0.25^l for degree l (MVSplat's ``sh_mask``)."""
+def sh_mask(d_sh: int, active_degree: int | None = None) -> Tensor:
+    """1 for degree 0, 0.1 * 0.25^l for degree l (MVSplat's ``sh_mask``); 0 above
+    ``active_degree`` (None: every degree)."""
     mask = torch.ones(d_sh)
     degree = int(d_sh**0.5) - 1
     for deg in range(1, degree + 1):
-        mask[deg * deg:(deg + 1) ** 2] = 0.1 * 0.25**deg
+        on = active_degree is None or deg <= active_degree
+        mask[deg * deg:(deg + 1) ** 2] = 0.1 * 0.25**deg if on else 0.0
     return mask
 
 
 class GaussianAdapter(nn.Module):
-    def __init__(self, sh_degree: int = 4, scale_min: float = 0.5, scale_max: float = 15.0):
+    """``colour_sh_degree``: the degree the colours use (``PrimaryNetworkCfg``); the head's
+    coefficients above it are masked to zero."""
+
+    def __init__(self, sh_degree: int = 4, scale_min: float = 0.5, scale_max: float = 15.0,
+                 colour_sh_degree: int | None = None):
         super().__init__()
         self.sh_degree = sh_degree
         self.d_sh = (sh_degree + 1) ** 2
         self.scale_min, self.scale_max = scale_min, scale_max
-        self.register_buffer("sh_mask", sh_mask(self.d_sh), persistent=False)
+        self.register_buffer("sh_mask", sh_mask(self.d_sh, colour_sh_degree), persistent=False)
 
     def forward(self, extrinsics: Float[Tensor, "b v 4 4"], intrinsics: Float[Tensor, "b v 3 3"],
                 raw: Float[Tensor, "b v r c"], depths: Float[Tensor, "b v r 1 g"],

@@ -349,13 +349,19 @@ def object_turntable(rng: np.random.Generator, frames: int) -> dict:
 BUILDERS = {"indoor": indoor_room, "outdoor": outdoor_terrain, "object": object_turntable}
 
 
+#: The view-dependent appearance's shiny materials: GGX roughness, clear-coat index of
+#: refraction (F0 = ((ior - 1) / (ior + 1))^2) and the chance that a non-ground shape is metal.
+SHINY_ROUGHNESS, SHINY_IOR, METAL_CHANCE = (0.03, 0.15), (1.6, 2.2), 0.4
+
+
 def _shiny(rng: np.random.Generator, material: dict, metal: bool) -> dict:
     """A glossy (clear-coated, keeping a texture) or metallic version of ``material``."""
-    roughness = round(float(rng.uniform(0.03, 0.15)), 3)
+    roughness = round(float(rng.uniform(*SHINY_ROUGHNESS)), 3)
     if metal:
         tint = (0.55 + 0.4 * rng.random(3)).round(3).tolist()
         return {"type": "conductor", "rgb": tint, "roughness": roughness}
-    out = {"type": "glossy", "roughness": roughness, "ior": round(float(rng.uniform(1.6, 2.2)), 3)}
+    out = {"type": "glossy", "roughness": roughness,
+           "ior": round(float(rng.uniform(*SHINY_IOR)), 3)}
     if material["type"] == "textured":
         out.update(texture=material["texture"], uv_scale=material.get("uv_scale", 1.0))
     else:
@@ -381,7 +387,7 @@ def view_dependent(spec: dict, rng: np.random.Generator) -> dict:
     need = max(0, -(-n // 2) - len(ground))
     chosen = set(ground) | set(others[:need]) | {i for i in others[need:] if rng.random() < 0.7}
     for i in sorted(chosen):
-        metal = shapes[i]["name"] not in GROUND and rng.random() < 0.4
+        metal = shapes[i]["name"] not in GROUND and rng.random() < METAL_CHANCE
         shapes[i]["material"] = _shiny(rng, shapes[i]["material"], metal)
     lights = []
     for light in spec["lights"]:

@@ -54,6 +54,11 @@ class PrimaryNetworkCfg:
     depth_unet_attn_res: tuple[int, ...] = (16,)
     gaussians_per_pixel: int = 1
     sh_degree: int = 4
+    # The SH degree the colours use (None: sh_degree). Lower than sh_degree, the head keeps
+    # its outputs (and a checkpoint's shapes) and the adapter zeroes the coefficients above
+    # it: degree 0 is colour that cannot change with the viewpoint, the control that measures
+    # how much view-dependent colour a split needs.
+    colour_sh_degree: int | None = None
     gaussian_scale_min: float = 0.5
     gaussian_scale_max: float = 15.0
     # Opacity mapping 0.5 (1 - (1-p)^e + p^(1/e)), e = 2^x, x from initial to final over
@@ -85,6 +90,9 @@ class PrimaryNetworkCfg:
                              f"{self.cost_volume_method!r}")
         if not 0 <= self.sh_degree <= 4:
             raise ValueError(f"sh_degree must be in 0..4, got {self.sh_degree}")
+        if self.colour_sh_degree is not None and not 0 <= self.colour_sh_degree <= self.sh_degree:
+            raise ValueError(f"colour_sh_degree must be in 0..sh_degree={self.sh_degree} or "
+                             f"None, got {self.colour_sh_degree}")
         if self.depth_unet_feat_dim % 4 or self.costvolume_unet_feat_dim % 8:
             raise ValueError("depth_unet_feat_dim must be a multiple of 4 and "
                              "costvolume_unet_feat_dim a multiple of 8 (GroupNorm groups)")
@@ -128,7 +136,7 @@ class PrimaryNetwork(nn.Module):
                                           cfg.ffn_expansion, cfg.use_cross_view_attention)
         self.depth_predictor = DepthPredictorMultiView(cfg)
         self.gaussian_adapter = GaussianAdapter(cfg.sh_degree, cfg.gaussian_scale_min,
-                                                cfg.gaussian_scale_max)
+                                                cfg.gaussian_scale_max, cfg.colour_sh_degree)
 
     @classmethod
     def from_mvsplat_checkpoint(cls, checkpoint, config: PrimaryNetworkCfg | None = None,
