@@ -4,8 +4,8 @@ with the true depths, PSNR of warped against true on the co-visible pixels, per 
 floor; glossy and metallic ones fall below it by as much as their appearance changes with the
 viewpoint.
 
-    python train/view_dependence.py --data outputs/big/vd_test5000 --split standard \
-        --out outputs/meter/vd_test5000
+    python train/view_dependence.py --data outputs/big/vd_test2000 --split standard \
+        --out outputs/meter/vd_test2000 [--noise-floor 12]
 
 Writes ``<out>/meter.json`` (per scene and per class) and ``<out>/images/<scene>.png`` (target,
 warped context, |difference| x4, material map: grey matte, blue glossy, orange metal).
@@ -24,18 +24,30 @@ def main(argv=None) -> int:
     p.add_argument("--stage", default="test")
     p.add_argument("--out", required=True)
     p.add_argument("--images", type=int, default=6, help="scenes to write error images for")
+    p.add_argument("--noise-floor", type=int, default=0, metavar="N",
+                   help="also render the first target of N scenes again with another sample "
+                        "seed: the render noise per class, the ceiling of a warp's PSNR")
     args = p.parse_args(argv)
     from usplat_dr.evaluation import synthetic_indices
-    from usplat_dr.evaluation.view_dependence import meter, paired_gap, write_error_images
+    from usplat_dr.evaluation.view_dependence import (
+        meter,
+        noise_floor,
+        paired_gap,
+        write_error_images,
+    )
     from usplat_dr.io import write_json
 
     index = json.loads(Path(synthetic_indices(args.data, [args.split])[args.split]).read_text())
     result = meter(args.data, index, args.stage)
     gaps = {name: paired_gap(result, name) for name in ("glossy", "metal")}
     out = Path(args.out)
+    noise = {}
+    if args.noise_floor:
+        spp = json.loads((Path(args.data) / "synth.json").read_text())["spp"]
+        noise = noise_floor(args.data, index, args.noise_floor, spp, args.stage)
     write_json(out / "meter.json", {"data": args.data, "split": args.split,
                                     "classes": result["classes"], "diffuse_minus": gaps,
-                                    "scenes": result["scenes"]})
+                                    "noise_floor": noise, "scenes": result["scenes"]})
     write_error_images(args.data, index, out / "images", args.images, args.stage)
     print(f"warp PSNR on co-visible pixels, {args.data} ({args.split}, "
           f"{len(result['scenes'])} scenes)")
@@ -44,6 +56,9 @@ def main(argv=None) -> int:
     for name, c in result["classes"].items():
         print(f"| {name} | {c['psnr']:.2f} | {c['scenes']} | {c['pooled_psnr']:.2f} | "
               f"{c['pixels']} |")
+    for name, c in noise.items():
+        print(f"render noise floor, {name}: {c['psnr']:.2f} dB over {c['pixels']} pixels "
+              f"({args.noise_floor} scenes)")
     for name, g in gaps.items():
         print(f"diffuse - {name}, paired by scene: {g['mean']:+.2f} dB over {g['scenes']} scenes")
     return 0

@@ -69,6 +69,9 @@ def test_evaluate_follows_the_protocol_and_writes_files(tmp_path, device):
         out = model.eval()(*model_inputs(batch, device), prune=None)
     per_target = psnr(out.color[0].cpu(), batch["target"]["image"][0])
     assert float(rows[0]["psnr"]) == pytest.approx(per_target.mean().item(), rel=1e-5)
+    # the material maps reach the example (the shiny and matte PSNRs' masks)
+    assert example["target"]["material"].shape == example["target"]["depth"].shape
+    assert rows[0]["psnr_matte"] != ""  # indoor rooms: matte walls in every view
     assert (tmp_path / "eval" / "renders" / "standard" / f"{example['scene']}.png").is_file()
     saved = json.loads((tmp_path / "eval" / "summary.json").read_text())
     assert saved["parameters"] == sum(p.numel() for p in model.parameters())
@@ -134,3 +137,24 @@ def test_keys_that_cannot_be_scored_are_counted_and_named(tmp_path):
     (root / "test" / "index.json").write_bytes(b"\xff\xfe garbage")
     with pytest.raises(ValueError, match="index.json is not valid JSON"):
         evaluate(model, dataset, {"custom": str(index_path)}, tmp_path / "e3", progress=False)
+
+
+def test_masked_psnr_against_numpy():
+    # PSNR over the pixels of the given material codes, per target, against a float64 numpy
+    # computation from the definition; a target without such pixels is NaN. 1e-6 dB: float32
+    # inputs, float64 means on both sides.
+    import numpy as np
+
+    from usplat_dr.evaluation.protocol import SHINY, masked_psnr
+
+    gen = torch.Generator().manual_seed(0)
+    pred = torch.rand(2, 3, 6, 7, generator=gen) * 1.2  # some values above 1: clipped
+    gt = torch.rand(2, 3, 6, 7, generator=gen)
+    material = torch.randint(0, 5, (2, 6, 7), generator=gen).float()
+    material[1] = 1.0  # the second target: matte only
+    got = masked_psnr(pred, gt, material, SHINY)
+    p, g, m = pred.double().clamp(0, 1).numpy(), gt.double().numpy(), material.numpy()
+    sel = np.isin(m[0], SHINY)
+    mse = ((p[0] - g[0]) ** 2).mean(0)[sel].mean()
+    assert got[0] == pytest.approx(-10 * np.log10(mse), abs=1e-6)
+    assert math.isnan(got[1])

@@ -26,6 +26,7 @@ from torch.utils.data import default_collate
 from tqdm import tqdm
 
 from usplat_dr.data.dataset import dataset_from_section
+from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY, PLAIN, TEXTURED
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import read_evaluation_index
 from usplat_dr.evaluation.figures import save_comparison
@@ -64,8 +65,8 @@ def depth_metrics(pred_depth: torch.Tensor, alpha: torch.Tensor, gt: torch.Tenso
             "delta1": (ratio < 1.25).double().mean().item()}
 
 
-#: Material codes (``usplat_dr.data.synth.render``) of the masked PSNRs.
-SHINY, MATTE = (3, 4), (1, 2)
+#: Material codes of the masked PSNRs (``usplat synth``'s maps).
+SHINY, MATTE = (GLOSSY, CONDUCTOR), (TEXTURED, PLAIN)
 
 
 def masked_psnr(pred: torch.Tensor, gt: torch.Tensor, material: torch.Tensor,

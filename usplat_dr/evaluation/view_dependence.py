@@ -142,6 +142,35 @@ def paired_gap(result: dict, low: str = "glossy", high: str = "diffuse") -> dict
     return {"mean": float(np.mean(gaps)) if gaps else float("nan"), "scenes": len(gaps)}
 
 
+def noise_floor(root: str | os.PathLike, index: dict, scenes: int, spp: int,
+                stage: str = "test") -> dict:
+    """The render noise per class: the first target view of ``scenes`` scenes rendered again
+    by Mitsuba from the stored description with another sample seed (``spp`` samples, as the
+    set was), against the stored image. A warp of a pixel cannot score above this. Returns
+    class -> {psnr (pooled over the scenes), pixels}."""
+    from usplat_dr.data.synth.render import render_spec  # Mitsuba: only when measuring noise
+
+    sse = {name: [0.0, 0] for name in CLASSES}
+    done = 0
+    for chunk in stage_chunks([root], stage):
+        for scene in read_chunk(chunk):
+            entry = index.get(scene["key"])
+            if entry is None or done == scenes:
+                continue
+            t = entry["target"][0]
+            stored = decode_image(scene["images"][t]).permute(1, 2, 0).numpy() / 255.0
+            spec = scene["mitsuba"]
+            again = render_spec(spec, stored.shape[:2], spp=spp, seed=int(spec["seed"]) + 1,
+                                frames=[t])[0][0] / 255.0
+            err = ((again - stored) ** 2).mean(-1)
+            for name, codes in CLASSES.items():
+                m = np.isin(scene["materials"].numpy()[t], codes)
+                sse[name][0] += float(err[m].sum())
+                sse[name][1] += int(m.sum())
+            done += 1
+    return {name: {"psnr": psnr_of(*e), "pixels": e[1]} for name, e in sse.items()}
+
+
 def write_error_images(root: str | os.PathLike, index: dict, out: str | os.PathLike,
                        scenes: int = 4, stage: str = "test") -> list[Path]:
     """Per scene a PNG: target, context warped into it, their absolute difference (x4) and

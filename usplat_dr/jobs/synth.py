@@ -25,7 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "view-dependent: the same geometry with at least half of the surfaces "
                    "glossy or metallic (floors always), a structured sky and path tracing, "
                    "so that appearance changes with the viewpoint")
-    p.add_argument("--spp", type=positive_int, default=64, help="Mitsuba samples per pixel")
+    p.add_argument("--spp", type=positive_int, default=None,
+                   help="Mitsuba samples per pixel (default: 64 diffuse, 256 view-dependent: "
+                   "path tracing's noise on shiny surfaces needs it)")
     p.add_argument("--backend", default="llvm", choices=["llvm", "cuda"],
                    help="Mitsuba variant: llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--stage", default="test", choices=["train", "test"],

@@ -35,6 +35,10 @@ log = logging.getLogger(__name__)
 __all__ = ["APPEARANCES", "KINDS", "SPLITS", "make_spec", "render_spec", "scene_record", "synthesize"]
 
 
+#: Samples per pixel by appearance (``synthesize``'s default).
+DEFAULT_SPP = {"diffuse": 64, "view-dependent": 256}
+
+
 def scene_seed(seed: int, i: int) -> int:
     return int.from_bytes(hashlib.sha256(f"{seed}/{i}".encode()).digest()[:4], "little")
 
@@ -89,7 +93,7 @@ def _rendered(jobs_list: list[tuple], jobs: int):
 
 def synthesize(out: str | os.PathLike, scenes: int, frames: int,
                resolution: tuple[int, int], seed: int = 0, kinds: tuple[str, ...] = KINDS,
-               spp: int = 64, backend: str = "llvm", stage: str = "test",
+               spp: int | None = None, backend: str = "llvm", stage: str = "test",
                previews: int = 8, progress: bool = True, jobs: int = 1,
                chunk_scenes: int | None = None, appearance: str = "diffuse") -> dict:
     """Render ``scenes`` procedural scenes of ``frames`` frames each (kinds round-robin) and
@@ -100,7 +104,10 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     (training shards by scene, so any number of chunks feeds any number of ranks).
     ``appearance``: ``"diffuse"`` or ``"view-dependent"`` (shiny surfaces, a structured sky,
     path tracing: ``usplat_dr.data.synth.scenes``); the same seed gives the same geometry and
-    cameras in both. Returns the split summary (split -> number of scenes in it).
+    cameras in both. ``spp``: Mitsuba samples per pixel (None: ``DEFAULT_SPP`` of the
+    appearance: path tracing's noise on shiny surfaces needs 256 to stay below what changes
+    with the viewpoint; BENCHMARKS.md, "A view-dependent split"). Returns the split summary
+    (split -> number of scenes in it).
 
     Examples:
         >>> import tempfile
@@ -121,6 +128,9 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
         raise ValueError(f"jobs must be >= 1 (worker processes), got {jobs}")
     if appearance not in APPEARANCES:
         raise ValueError(f"appearance must be one of {APPEARANCES}, got {appearance!r}")
+    spp = DEFAULT_SPP[appearance] if spp is None else spp
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1 (Mitsuba samples per pixel), got {spp}")
     if chunk_scenes is not None and chunk_scenes < 1:
         raise ValueError(f"chunk_scenes must be >= 1 (or None: chunks of up to 100 MB), got "
                          f"{chunk_scenes}")
