@@ -119,6 +119,13 @@ def main(argv=None) -> int:
                    help="more held-out sets: every run is evaluated on each as well (in "
                         "<run>/eval_<folder name>) and each gets its own verdict_<folder "
                         "name>.md / .png")
+    p.add_argument("--register", metavar="FILE",
+                   help="also record the standard split's labels (both arms) in FILE under "
+                        "--set-name, keeping its other sets (checkpoints/verdict.json: what "
+                        "the demo prints)")
+    p.add_argument("--set-name", default=None,
+                   help="the held-out set's name in --register (default: the --eval-data "
+                        "folder's name, standard split)")
     p.add_argument("--job", nargs=2, metavar=("VARIANT", "SEED"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
@@ -167,6 +174,8 @@ def main(argv=None) -> int:
              + ", ".join(f"{v} {s:.3f}" for v, s in sorted(speed.items())) + "\n")
     (out / "verdict.md").write_text(text)
     print(text)
+    if args.register:
+        register(args, out)
     for data in args.also_eval:
         name = Path(data).resolve().name
         evaluate_again(args, out, jobs, data, f"eval_{name}")
@@ -174,6 +183,33 @@ def main(argv=None) -> int:
         (out / f"verdict_{name}.md").write_text(text)
         print(text)
     return 0
+
+
+def register(args, out: Path) -> None:
+    """Write the standard split's PSNR labels of this study into ``--register``'s file, one
+    entry per arm, replacing earlier entries of the same set and keeping the others."""
+    import datetime
+
+    from usplat_dr.evaluation.verdict import REFUTE, SUPPORT
+    from usplat_dr.io import write_json
+
+    name = args.set_name or f"standard split of {Path(args.eval_data).resolve().name}"
+    path = Path(args.register)
+    old = json.loads(path.read_text()) if path.is_file() else {"sets": []}
+    command = "python train/verdict_study.py " + " ".join(
+        a for a in sys.argv[1:] if not a.startswith("--register"))
+    rows = [{"set": name, **{k: r[k] for k in ("arm", "mean", "low", "high", "seed_low",
+                                                 "seed_high", "seeds", "scenes", "label")},
+             "command": command}
+            for r in json.loads((out / "labels.json").read_text()) if r["split"] == "standard"]
+    write_json(path, {
+        "date": datetime.date.today().isoformat(),
+        "rule": f"supports if (c) - (a) >= +{SUPPORT} dB with the seed-level lower bound > 0; "
+                f"refutes if the seed-level upper bound < +{REFUTE} dB; else inconclusive",
+        "protocol": "(a) continued and (c) fine-tuned from checkpoints/tiny_baseline.pt for "
+                    "the same steps, seeds and data; PSNR on the held-out set's standard split",
+        "sets": [e for e in old["sets"] if e["set"] != name] + rows})
+    print(f"registered {len(rows)} rows for {name!r} in {path}")
 
 
 def evaluate_again(args, out: Path, jobs, data: str, eval_name: str) -> None:
