@@ -112,13 +112,13 @@ def registered_lines(registered: dict | None) -> list[str]:
     """The pre-registered multi-seed verdict (``checkpoints/verdict.json``) as Markdown: per
     held-out set, (c) - (a) on PSNR with both intervals and the rule's label."""
     if not registered:
-        return ["No multi-seed verdict is shipped beside the checkpoints "
-                "(`checkpoints/verdict.json`).", ""]
-    lines = [f"The pre-registered multi-seed verdict of the same protocol "
-             f"(`checkpoints/verdict.json`, {registered['date']}; rule: "
-             f"{registered['rule']}):", "",
-             "| held-out set | arm | (c) - (a) PSNR | 95% bootstrap | 95% seed-level t | "
-             "seeds x scenes | label |", "|---|---|---|---|---|---|---|"]
+        return [("No multi-seed verdict is shipped beside the checkpoints "
+                 "(`checkpoints/verdict.json`)."), ""]
+    lines = [(f"The pre-registered multi-seed verdict of the same protocol "
+              f"(`checkpoints/verdict.json`, {registered['date']}; rule: "
+              f"{registered['rule']}):"), "",
+             ("| held-out set | arm | (c) - (a) PSNR | 95% bootstrap | 95% seed-level t | "
+              "seeds x scenes | label |"), "|---|---|---|---|---|---|---|"]
     for r in registered["sets"]:
         if r.get("label") in (None, "not run"):
             lines.append(f"| {r['set']} | | | | | | not run: {r.get('why', '')} |")
