@@ -187,7 +187,8 @@ def main(argv=None) -> int:
 
 def register(args, out: Path) -> None:
     """Write the standard split's PSNR labels of this study into ``--register``'s file, one
-    entry per arm, replacing earlier entries of the same set and keeping the others."""
+    entry per arm, replacing earlier entries of the same set and arm and keeping the others
+    (a later call with more seeds and no wall-time arm keeps the earlier wall-time row)."""
     import datetime
 
     from usplat_dr.evaluation.verdict import REFUTE, SUPPORT
@@ -208,7 +209,9 @@ def register(args, out: Path) -> None:
                 f"refutes if the seed-level upper bound < +{REFUTE} dB; else inconclusive",
         "protocol": "(a) continued and (c) fine-tuned from checkpoints/tiny_baseline.pt for "
                     "the same steps, seeds and data; PSNR on the held-out set's standard split",
-        "sets": [e for e in old["sets"] if e["set"] != name] + rows})
+        "sets": [e for e in old["sets"]
+                 if (e["set"], e.get("arm")) not in {(r["set"], r["arm"]) for r in rows}]
+                + rows})
     print(f"registered {len(rows)} rows for {name!r} in {path}")
 
 
