@@ -72,6 +72,12 @@ def main(argv=None) -> int:
     # of tiny_baseline.pt trained from the previous one).
     init = state["config"]["model"].get("init_from")
     init_steps = read_usplat_checkpoint(init, trust=trust)["step"] if init else 0
+    manifest_path = args.root / "manifest.json"
+    manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else []
+    shipped_init = next((e for e in manifest if init and Path(init).resolve()
+                         == (args.root / e["file"]).resolve()), None)
+    if shipped_init is not None:  # a shipped file: its own training counts every stage
+        init_steps = shipped_init["steps"]
     export_weights(args.checkpoint, file, half=True, metadata=metadata, trust=trust)
     shipped = held_out(file, args.eval_data, args.size, args.splits)
     diff = abs(shipped["standard"]["psnr"] - reference["standard"]["psnr"])
@@ -89,8 +95,6 @@ def main(argv=None) -> int:
              "float16_psnr_change_db": round(diff, 4),
              "provenance": state.get("provenance", {}),
              "metrics": {"eval_data": args.eval_data, "splits": shipped}}
-    manifest_path = args.root / "manifest.json"
-    manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else []
     manifest = [e for e in manifest if e["name"] != args.name] + [entry]
     write_json(manifest_path, manifest)
     std = shipped["standard"]
