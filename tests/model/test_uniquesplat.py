@@ -224,7 +224,12 @@ def test_agnostic_weights_are_cached_and_refreshed(monkeypatch):
 ])
 def test_other_injection_settings_start_at_the_primary_network(overrides):
     # Any choice of layers or Delta W form: at initialisation the full variant's Gaussians
-    # are the baseline's (same primary weights copied into W); tolerance as above.
+    # are the baseline's (same primary weights copied into W); tolerance as above, except
+    # for the means where the disparity head takes Delta W: depth = 1 / disparity turns the
+    # head's float32 rounding (its convolution is summed in another order: grouped by target)
+    # into depth^2 times it, up to 1e4 x at the far plane (100). So |d means| <= 1e-4 +
+    # 5e-7 |means|^2 (5e-7: a few ulps of a disparity of order 1); measured up to 3.7e-4 at
+    # |means| = 99 (7 % of the bound); a wrong path is off by order 1 everywhere.
     torch.manual_seed(2)
     base = UniqueSplat.from_preset("tiny", variant="baseline").eval()
     model = UniqueSplat.from_preset("tiny", variant="full", **overrides)
@@ -235,7 +240,11 @@ def test_other_injection_settings_start_at_the_primary_network(overrides):
         a = base(*args, render=False).gaussians
         c = model(*args, render=False).gaussians
     for name in FIELDS:
-        assert torch.allclose(getattr(a, name), getattr(c, name), rtol=1e-5, atol=1e-4), name
+        x, y = getattr(a, name), getattr(c, name)
+        if name == "means":
+            assert ((x - y).abs() <= 1e-4 + 5e-7 * x.square()).all(), name
+        else:
+            assert torch.allclose(x, y, rtol=1e-5, atol=1e-4), name
 
 
 def test_resnet_weights_load_from_a_torchvision_file(tmp_path, caplog):
