@@ -39,7 +39,6 @@ import argparse
 import csv
 import json
 import math
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -209,11 +208,6 @@ def score_targets(pred, batch, pixels: str) -> list[float]:
                        SHINY if pixels == "shiny" else MATTE)
 
 
-def nan_mean(values) -> float:
-    values = [v for v in values if not math.isnan(v)]
-    return statistics.mean(values) if values else float("nan")
-
-
 def rank_arg(text: str):
     """``--rank``: a positive int, or ``full``."""
     if text == "full":
@@ -249,13 +243,14 @@ def paired(rows_x: list, x: str, rows_y: list, y: str) -> dict:
     higher."""
     import numpy as np
 
+    from usplat_dr.evaluation import nan_mean
     from usplat_dr.evaluation.verdict import bootstrap_interval
 
     def by_scene(rows, col):
         out: dict[str, list[float]] = {}
         for r in rows:
             out.setdefault(r["scene"], []).append(float(r[col]))
-        return {k: nan_mean(v) for k, v in out.items()}
+        return {k: nan_mean(v) for k, v in out.items()}  # NaN: no such pixels
 
     a, b = by_scene(rows_x, x), by_scene(rows_y, y)
     if set(a) != set(b):
@@ -324,7 +319,7 @@ def main(argv=None) -> int:
 
     from usplat_dr.data.dataset import dataset_from_section
     from usplat_dr.data.types import model_inputs
-    from usplat_dr.evaluation import synthetic_indices
+    from usplat_dr.evaluation import nan_mean, synthetic_indices
     from usplat_dr.io import atomic_open, write_json
     from usplat_dr.model.hypernet.hypernetwork import ConvSpec
     from usplat_dr.training.checkpoints import load_model, training_image_shape
@@ -370,7 +365,7 @@ def main(argv=None) -> int:
             rows.append({"scene": example["scene"], "target": j, "a": ref,
                          **{m.replace("-", "_"): f["after"][j] for m, f in fits.items()}})
         keys = [k for k in rows[0] if k not in ("scene", "target")]
-        mean = {k: nan_mean(r[k] for r in rows) for k in keys}
+        mean = {k: nan_mean([r[k] for r in rows]) for k in keys}
         elapsed = time.perf_counter() - t0
         with atomic_open(out / "per_target.csv", "w") as f:  # after every scene: resumable
             w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -386,7 +381,7 @@ def main(argv=None) -> int:
         diffs.append(("per_target", "shared"))
     summary = {
         **settings, "scenes": len({r["scene"] for r in rows}), "targets": len(rows),
-        **{f"psnr_{k}": nan_mean(r[k] for r in rows) for k in keys},
+        **{f"psnr_{k}": nan_mean([r[k] for r in rows]) for k in keys},
         **{f"{x}_minus_{y}": paired(rows, x, rows, y) for x, y in diffs},
         "seconds": time.perf_counter() - t0}
     write_json(out / "summary.json", summary)
