@@ -195,8 +195,9 @@ PIXELS = ("all", "shiny", "matte")
 def score_targets(pred, batch, pixels: str) -> list[float]:
     """PSNR per target of ``pred`` [N, 3, H, W] against the batch's targets, on all pixels or
     on those of shiny (glossy, metal) or matte surfaces (NaN for a target without any)."""
+    from usplat_dr.data.synth.render import MATTE, SHINY
     from usplat_dr.evaluation.metrics import psnr
-    from usplat_dr.evaluation.protocol import MATTE, SHINY, masked_psnr
+    from usplat_dr.evaluation.protocol import masked_psnr
 
     gt = batch["target"]["image"][0]
     if pixels == "all":

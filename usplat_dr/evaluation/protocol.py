@@ -26,7 +26,7 @@ from torch.utils.data import default_collate
 from tqdm import tqdm
 
 from usplat_dr.data.dataset import dataset_from_section
-from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY, PLAIN, TEXTURED
+from usplat_dr.data.synth.render import MATTE, SHINY
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import read_evaluation_index
 from usplat_dr.evaluation.figures import save_comparison
@@ -63,10 +63,6 @@ def depth_metrics(pred_depth: torch.Tensor, alpha: torch.Tensor, gt: torch.Tenso
     return {"abs_rel": ((d - g).abs() / g).mean().item(),
             "rmse": (d - g).square().mean().sqrt().item(),
             "delta1": (ratio < 1.25).double().mean().item()}
-
-
-#: Material codes of the masked PSNRs (``usplat synth``'s maps).
-SHINY, MATTE = (GLOSSY, CONDUCTOR), (TEXTURED, PLAIN)
 
 
 def masked_psnr(pred: torch.Tensor, gt: torch.Tensor, material: torch.Tensor,

@@ -25,6 +25,7 @@ Examples:
     (True, True)
 """
 
+import itertools
 import math
 import os
 from pathlib import Path
@@ -32,12 +33,12 @@ from pathlib import Path
 import numpy as np
 
 from usplat_dr.data.chunks import cameras_to_matrices, decode_image, read_chunk, stage_chunks
-from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY, PLAIN, TEXTURED
+from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY, MATTE
 from usplat_dr.geometry.cameras import pixel_directions
 from usplat_dr.io.images import save_png
 
 #: Material classes of the meter: name -> material codes of ``usplat synth``'s maps.
-CLASSES = {"diffuse": (TEXTURED, PLAIN), "glossy": (GLOSSY,), "metal": (CONDUCTOR,)}
+CLASSES = {"diffuse": MATTE, "glossy": (GLOSSY,), "metal": (CONDUCTOR,)}
 #: A scene's class enters the mean only with at least this many co-visible pixels (over all
 #: its target-context pairs): fewer make a noisy PSNR.
 MIN_PIXELS = 50
@@ -80,6 +81,16 @@ def warp_into(target_depth: np.ndarray, target_c2w: np.ndarray, target_k: np.nda
     return np.where(valid[..., None], out, 0.0), valid
 
 
+def indexed_scenes(root: str | os.PathLike, index: dict, stage: str = "test"):
+    """The chunk records of a set that ``index`` evaluates, with their entries, in chunk
+    order: ``(scene, entry)`` pairs."""
+    for chunk in stage_chunks([root], stage):
+        for scene in read_chunk(chunk):
+            entry = index.get(scene["key"])
+            if entry is not None:
+                yield scene, entry
+
+
 def scene_errors(scene: dict, entry: dict, rel_tol: float = 0.05) -> dict[str, list]:
     """Squared-error sum and pixel count per class (``[sse, n]``) of a chunk record's context
     views warped into its target views (``entry``: an evaluation index entry)."""
@@ -115,14 +126,10 @@ def meter(root: str | os.PathLike, index: dict, stage: str = "test",
     ``MIN_PIXELS`` co-visible pixels of it, their number, and the PSNR of all such pixels
     pooled). ``index``: scene key -> {"context", "target"} (an evaluation index)."""
     per_scene = {}
-    for chunk in stage_chunks([root], stage):
-        for scene in read_chunk(chunk):
-            entry = index.get(scene["key"])
-            if entry is None:
-                continue
-            errs = scene_errors(scene, entry, rel_tol)
-            per_scene[scene["key"]] = {name: {"psnr": psnr_of(*e), "pixels": e[1],
-                                              "sse": e[0]} for name, e in errs.items()}
+    for scene, entry in indexed_scenes(root, index, stage):
+        errs = scene_errors(scene, entry, rel_tol)
+        per_scene[scene["key"]] = {name: {"psnr": psnr_of(*e), "pixels": e[1], "sse": e[0]}
+                                   for name, e in errs.items()}
     classes = {}
     for name in CLASSES:
         kept = [s[name] for s in per_scene.values() if s[name]["pixels"] >= MIN_PIXELS]
@@ -151,23 +158,17 @@ def noise_floor(root: str | os.PathLike, index: dict, scenes: int, spp: int,
     from usplat_dr.data.synth.render import render_spec  # Mitsuba: only when measuring noise
 
     sse = {name: [0.0, 0] for name in CLASSES}
-    done = 0
-    for chunk in stage_chunks([root], stage):
-        for scene in read_chunk(chunk):
-            entry = index.get(scene["key"])
-            if entry is None or done == scenes:
-                continue
-            t = entry["target"][0]
-            stored = decode_image(scene["images"][t]).permute(1, 2, 0).numpy() / 255.0
-            spec = scene["mitsuba"]
-            again = render_spec(spec, stored.shape[:2], spp=spp, seed=int(spec["seed"]) + 1,
-                                frames=[t])[0][0] / 255.0
-            err = ((again - stored) ** 2).mean(-1)
-            for name, codes in CLASSES.items():
-                m = np.isin(scene["materials"].numpy()[t], codes)
-                sse[name][0] += float(err[m].sum())
-                sse[name][1] += int(m.sum())
-            done += 1
+    for scene, entry in itertools.islice(indexed_scenes(root, index, stage), scenes):
+        t = entry["target"][0]
+        stored = decode_image(scene["images"][t]).permute(1, 2, 0).numpy() / 255.0
+        spec = scene["mitsuba"]
+        again = render_spec(spec, stored.shape[:2], spp=spp, seed=int(spec["seed"]) + 1,
+                            frames=[t])[0][0] / 255.0
+        err = ((again - stored) ** 2).mean(-1)
+        for name, codes in CLASSES.items():
+            m = np.isin(scene["materials"].numpy()[t], codes)
+            sse[name][0] += float(err[m].sum())
+            sse[name][1] += int(m.sum())
     return {name: {"psnr": psnr_of(*e), "pixels": e[1]} for name, e in sse.items()}
 
 
@@ -178,20 +179,16 @@ def write_error_images(root: str | os.PathLike, index: dict, out: str | os.PathL
     palette = np.array([[0, 0, 0], [0.55, 0.55, 0.55], [0.8, 0.8, 0.8], [0.2, 0.5, 1.0],
                         [1.0, 0.7, 0.1]])  # miss, textured, plain, glossy, metal
     written = []
-    for chunk in stage_chunks([root], stage):
-        for scene in read_chunk(chunk):
-            entry = index.get(scene["key"])
-            if entry is None or len(written) == scenes:
-                continue
-            c2w, k = (x.double().numpy() for x in cameras_to_matrices(scene["cameras"]))
-            t, c = entry["target"][0], entry["context"][0]
-            img = {i: decode_image(scene["images"][i]).permute(1, 2, 0).numpy() / 255.0
-                   for i in (t, c)}
-            depths = scene["depths"].float().numpy()
-            warped, valid = warp_into(depths[t], c2w[t], k[t], img[c], depths[c], c2w[c], k[c])
-            diff = np.clip(4 * np.abs(warped - img[t]), 0, 1) * valid[..., None]
-            mats = palette[np.clip(scene["materials"].numpy()[t], 0, len(palette) - 1)]
-            path = Path(out) / f"{scene['key']}.png"
-            save_png(path, np.concatenate([img[t], warped, diff, mats], 1))
-            written.append(path)
+    for scene, entry in itertools.islice(indexed_scenes(root, index, stage), scenes):
+        c2w, k = (x.double().numpy() for x in cameras_to_matrices(scene["cameras"]))
+        t, c = entry["target"][0], entry["context"][0]
+        img = {i: decode_image(scene["images"][i]).permute(1, 2, 0).numpy() / 255.0
+               for i in (t, c)}
+        depths = scene["depths"].float().numpy()
+        warped, valid = warp_into(depths[t], c2w[t], k[t], img[c], depths[c], c2w[c], k[c])
+        diff = np.clip(4 * np.abs(warped - img[t]), 0, 1) * valid[..., None]
+        mats = palette[np.clip(scene["materials"].numpy()[t], 0, len(palette) - 1)]
+        path = Path(out) / f"{scene['key']}.png"
+        save_png(path, np.concatenate([img[t], warped, diff, mats], 1))
+        written.append(path)
     return written

@@ -21,6 +21,9 @@ from usplat_dr.geometry.cameras import opencv_c2w_to_mitsuba, pixel_directions
 MISS, TEXTURED, PLAIN, GLOSSY, CONDUCTOR = 0, 1, 2, 3, 4
 MATERIAL_CODES = {"textured": TEXTURED, "plain": PLAIN, "glossy": GLOSSY,
                   "conductor": CONDUCTOR}
+#: The two families the metrics and the meter separate: surfaces whose appearance changes with
+#: the viewpoint (glossy, metal) and those whose appearance does not (textured, plain).
+SHINY, MATTE = (GLOSSY, CONDUCTOR), (TEXTURED, PLAIN)
 
 _VARIANTS = {"llvm": "llvm_ad_rgb", "cuda": "cuda_ad_rgb"}
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY, PLAIN
+from usplat_dr.data.synth.render import PLAIN, SHINY
 from usplat_dr.geometry.cameras import pixel_directions
 
 SPLITS = ("standard", "wide_baseline", "extrapolation", "large_rotation", "disocclusion",
@@ -98,7 +98,7 @@ def scene_splits(c2w: np.ndarray, intr: np.ndarray, depths: np.ndarray,
         out["disocclusion"] = {"context": std["context"], "target": sorted(top)}
 
     for name, codes, threshold in (("textureless", (PLAIN,), MIN_TEXTURELESS),
-                                   ("glossy", (GLOSSY, CONDUCTOR), MIN_GLOSSY)):
+                                   ("glossy", SHINY, MIN_GLOSSY)):
         frac = {t: float(np.isin(materials[t], codes).mean()) for t in candidates}
         top = sorted(candidates, key=lambda t: -frac[t])[:3]
         stats[name] = round(max(frac.values(), default=0.0), 4)
