@@ -7,8 +7,9 @@
 #   bash scripts/run.sh doctor         report versions, libLLVM, backends, GPU
 #   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench_rasterizer.py)
 #   bash scripts/run.sh setup          only install
-#   bash scripts/run.sh gpu-check      on a CUDA machine: the CUDA tests and the rasteriser
-#                                      benchmark on the GPU, a report in outputs/gpu_check/
+#   bash scripts/run.sh gpu-check [D]  on a CUDA machine: the CUDA tests, the rasteriser and
+#                                      UniqueSplat benchmarks on the GPU, a report in
+#                                      D (default outputs/gpu_check/; wheels it lacks: .whl/)
 #
 # Each command first installs what it needs, once: Debian's libllvm19 when no libLLVM >= 19 is
 # present (Dr.Jit's CPU backend; 15 and 16 crash it), a virtual environment in .venv (or
@@ -77,7 +78,7 @@ setup() { ensure_python; ensure_libllvm; ensure_venv; }
 # installed), adds the wheels found in .whl/ (drjit's, jaxtyping's, ...: pip download them
 # where there is a network) to a private site folder, and leaves everything else alone.
 gpu_check() {
-    local out="$ROOT/outputs/gpu_check" site=/tmp/usplat-gpu-site
+    local out=${1:-$ROOT/outputs/gpu_check} site=/tmp/usplat-gpu-site
     mkdir -p "$out"
     if ls "$ROOT"/.whl/*.whl >/dev/null 2>&1; then
         say "installing the wheels in .whl/ into $site"
@@ -101,15 +102,25 @@ gpu_check() {
         "$PYTHON" -c 'import sys, torch, drjit; print("python", sys.version.split()[0], "torch", torch.__version__, "cuda", torch.version.cuda, "drjit", drjit.__version__)'
         echo '```'
         echo
-        echo "## CUDA tests (pytest -k cuda: every test parametrised over the devices)"
+        echo "## CUDA tests (the CUDA variants of every test parametrised over the devices)"
         echo
         echo '```'
-        "$PYTHON" -m pytest -q -p no:cacheprovider -k cuda -rs tests 2>&1 | tail -n 40 || true
+        # "not llvm": a GPU image may have no libLLVM >= 19 for the CPU variants.
+        "$PYTHON" -m pytest -q -p no:cacheprovider -k "cuda and not llvm" -rs tests 2>&1 \
+            | grep -v "jit_find_library\|jitc_llvm_init" | tail -n 40 || true
         echo '```'
         echo
         echo "## Rasteriser on the GPU (train/bench_rasterizer.py --device cuda)"
         echo
-        "$PYTHON" train/bench_rasterizer.py --device cuda --dense-max 0 2>&1 || true
+        "$PYTHON" train/bench_rasterizer.py --device cuda --sizes 64 256 --dense-max 64 2>&1 \
+            | grep -v "jit_find_library\|jitc_llvm_init" || true
+        echo
+        echo "## UniqueSplat (c)/(a) on the GPU (train/bench_uniquesplat.py --device cuda)"
+        echo
+        echo '```'
+        "$PYTHON" train/bench_uniquesplat.py --device cuda --processes 1 --repeats 10 --layers \
+            2>&1 | grep -v "jit_find_library\|jitc_llvm_init" || true
+        echo '```'
     } | tee "$out/report.md"
     say "report: $out/report.md"
 }
@@ -123,5 +134,5 @@ case "$command" in
     doctor) setup; exec "$VENV/bin/usplat" doctor ;;
     bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench_rasterizer.py "$@" ;;
     gpu-check) cd "$ROOT"; gpu_check "$@" ;;
-    *) sed -n '2,15p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+    *) sed -n '2,16p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

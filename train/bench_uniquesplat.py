@@ -2,7 +2,9 @@
 2 context views, 3 target views, batch 1, 2 threads, ``inference_mode``, random weights.
 
 Two timings per variant: the model (encoder once, Gaussians for every target) and the model
-plus rendering the 3 targets with the Dr.Jit rasteriser (LLVM). Times: one process builds all
+plus rendering the 3 targets with the Dr.Jit rasteriser (LLVM on ``--device cpu``, CUDA on
+``--device cuda``, where each timing is bracketed by ``torch.cuda.synchronize`` and memory is
+the peak the torch allocator saw in the timed runs; Dr.Jit's own CUDA memory is not in it). Times: one process builds all
 variants and alternates them run by run (a, b, c, a, b, c, ...), so machine load hits them
 alike; ``--processes`` such processes, the best median reported. Peak RSS: one process per
 variant (its own peak). Ratios are against (a) measured in the same run. The paper (A6000):
@@ -11,7 +13,7 @@ four convolutions of both heads; ``--layers`` adds (c) with Delta W on fewer lay
 a full-rank Delta W, the cost of each choice.
 
     python train/bench_uniquesplat.py [--processes 2] [--repeats 5] [--setting paper256 tiny64]
-        [--layers] [--threads 1]
+        [--layers] [--threads 1] [--device cpu|cuda]
 """
 
 import argparse
@@ -36,7 +38,7 @@ LAYER_CHOICES = {
 SETTINGS = {"paper256": ("paper", 256), "tiny64": ("tiny", 64), "paper64": ("paper", 64)}
 
 
-def scene(size: int):
+def scene(size: int, device: str = "cpu"):
     import torch
 
     e = torch.eye(4).repeat(1, 2, 1, 1)
@@ -45,8 +47,9 @@ def scene(size: int):
     te = torch.eye(4).repeat(1, 3, 1, 1)
     te[0, :, 0, 3] = torch.tensor([0.025, 0.05, 0.075])
     x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
-    return (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2), k[:, :1].expand(1, 3, 3, 3), te,
+    args = (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2), k[:, :1].expand(1, 3, 3, 3), te,
             torch.ones(1, 3), 100 * torch.ones(1, 3))
+    return tuple(a.to(device) for a in args)
 
 
 def build(preset: str, variant: str, overrides: dict):
@@ -59,13 +62,21 @@ def build(preset: str, variant: str, overrides: dict):
     return UniqueSplat.from_preset(preset, variant=variant, **overrides).eval()
 
 
-def child_times(preset: str, size: int, configs: dict, repeats: int, out: str) -> None:
+def synchronize(device: str) -> None:
+    import torch
+
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def child_times(preset: str, size: int, configs: dict, device: str, repeats: int,
+                out: str) -> None:
     import time
 
     import torch
 
-    models = {name: build(preset, *cfg) for name, cfg in configs.items()}
-    args = scene(size)
+    models = {name: build(preset, *cfg).to(device) for name, cfg in configs.items()}
+    args = scene(size, device)
     result = {name: {"params": sum(p.numel() for p in m.parameters())}
               for name, m in models.items()}
     with torch.inference_mode():
@@ -77,10 +88,17 @@ def child_times(preset: str, size: int, configs: dict, repeats: int, out: str) -
                     m(*args, render=render)
             for _ in range(repeats):
                 for name, m in models.items():
+                    synchronize(device)
+                    if device == "cuda":
+                        torch.cuda.reset_peak_memory_stats()
                     w, c = time.perf_counter(), time.process_time()
                     m(*args, render=render)
+                    synchronize(device)
                     samples[name][0].append(time.perf_counter() - w)
                     samples[name][1].append(time.process_time() - c)
+                    if device == "cuda" and render:  # one process is enough on a GPU
+                        result[name]["gib"] = max(result[name].get("gib", 0.0),
+                                                  torch.cuda.max_memory_allocated() / 2**30)
             for name, (walls, cpus) in samples.items():
                 result[name][key] = {"wall": statistics.median(walls),
                                      "cpu": statistics.median(cpus)}
@@ -88,14 +106,14 @@ def child_times(preset: str, size: int, configs: dict, repeats: int, out: str) -
         json.dump(result, f)
 
 
-def child_memory(preset: str, size: int, cfg: list, out: str) -> None:
+def child_memory(preset: str, size: int, cfg: list, device: str, out: str) -> None:
     import resource
 
     import torch
 
-    model = build(preset, *cfg)
+    model = build(preset, *cfg).to(device)
     with torch.inference_mode():
-        model(*scene(size), render=True)
+        model(*scene(size, device), render=True)
     with open(out, "w") as f:
         json.dump({"rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}, f)
 
@@ -119,6 +137,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2,
                     help="torch and Dr.Jit threads (1: how training runs, and a fair "
                          "measurement while another one-thread job holds the other core)")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                    help="cpu: torch on CPU, the LLVM rasteriser; cuda: both on the GPU")
     ap.add_argument("--child", help=argparse.SUPPRESS)  # internal: one measurement
     ap.add_argument("--payload", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -137,20 +157,27 @@ def main() -> None:
         dr.set_thread_count(args.threads)
         payload = json.loads(args.payload)
         if args.child == "times":
-            return child_times(*payload[:3], args.repeats, payload[3])
+            return child_times(*payload[:4], args.repeats, payload[4])
         return child_memory(*payload)
 
     configs = {**VARIANTS, **(LAYER_CHOICES if args.layers else {})}
     for setting in args.setting:
         preset, size = SETTINGS[setting]
         with tempfile.TemporaryDirectory() as tmp:
-            runs = [run_child("times", [preset, size, configs], args.repeats,
+            runs = [run_child("times", [preset, size, configs, args.device], args.repeats,
                               f"{tmp}/t{i}.json", args.threads)
                     for i in range(args.processes)]
-            rss = {name: run_child("memory", [preset, size, list(cfg)], 0, f"{tmp}/m.json",
-                                   args.threads)["rss_gib"] for name, cfg in configs.items()}
+            if args.device == "cuda":  # the allocator's peak, read in the timing process
+                rss = {name: max(r[name]["gib"] for r in runs) for name in configs}
+            else:  # RSS: one process per variant (its own peak)
+                rss = {name: run_child("memory", [preset, size, list(cfg), args.device], 0,
+                                       f"{tmp}/m.json", args.threads)["rss_gib"]
+                       for name, cfg in configs.items()}
+        where = (f"{args.threads} thread(s)" if args.device == "cpu"
+                 else f"CUDA ({torch_device_name()})")
+        memory = "peak RSS" if args.device == "cpu" else "peak torch CUDA memory"
         print(f"\n{preset} preset, {size}x{size}, 2 context + 3 targets, batch 1, "
-              f"{args.threads} thread(s); variants alternated run by run, best of "
+              f"{where}; variants alternated run by run, best of "
               f"{args.processes} processes (median of {args.repeats} runs each)")
 
         def best(name, key, what):
@@ -162,8 +189,14 @@ def main() -> None:
                      f"({best(name, key, 'wall') / base[key]:4.2f}x) cpu "
                      f"{best(name, key, 'cpu'):6.3f} s" for key in ("model", "render")]
             print(f"  {name:38s} {runs[0][name]['params'] / 1e6:6.2f}M params  "
-                  + "  |  ".join(cells) + f"  peak RSS {rss[name]:4.2f} GiB")
+                  + "  |  ".join(cells) + f"  {memory} {rss[name]:4.2f} GiB")
         print("  the paper on a GPU: (c)/(a) 1.34, (b)/(a) 1.002")
+
+
+def torch_device_name() -> str:
+    import torch
+
+    return torch.cuda.get_device_name(0)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ from usplat_dr.data.synth.render import intrinsics_for, render_spec, set_variant
 from usplat_dr.data.synth.scenes import look_at_np, make_spec, rotate, scale, translate
 from usplat_dr.geometry.cameras import mitsuba_to_opencv_c2w, opencv_c2w_to_mitsuba
 
+pytest.importorskip("mitsuba")  # these tests are Mitsuba's; a GPU image without it skips them
 mi = set_variant("llvm")
 
 

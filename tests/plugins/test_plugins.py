@@ -5,13 +5,14 @@ independent float64 constructions (look-at camera, covariance from scale and qua
 import math
 
 import drjit as dr  # (conftest imported usplat_dr first: libLLVM chosen)
-import mitsuba as mi
 import numpy as np
 import pytest
 import torch
 
-import usplat_dr.plugins as plugins
-from usplat_dr.render import RasterSettings, rasterize
+mi = pytest.importorskip("mitsuba")  # Mitsuba's plugins; a GPU image without it skips them
+
+import usplat_dr.plugins as plugins  # noqa: E402  (imports Mitsuba)
+from usplat_dr.render import RasterSettings, rasterize  # noqa: E402
 
 
 @pytest.fixture(autouse=True)

@@ -78,7 +78,7 @@ def project_ref(c2w, K, near, W, H, means, covs):
     upper = torch.triu(covs)
     sigma = upper + upper.transpose(-1, -2) - torch.diag_embed(torch.diagonal(covs, 0, -2, -1))
     T = J @ R
-    cov2 = T @ sigma @ T.transpose(-1, -2) + 0.3 * torch.eye(2, dtype=covs.dtype)
+    cov2 = T @ sigma @ T.transpose(-1, -2) + 0.3 * torch.eye(2, dtype=covs.dtype, device=covs.device)
     a, b, c = cov2[:, 0, 0], cov2[:, 0, 1], cov2[:, 1, 1]
     det = a * c - b * b
     valid = valid & (det > 0)
@@ -104,8 +104,8 @@ def render_ref(extrinsics, intrinsics, near, far, image_shape, background, means
     colors, alphas, depths = [], [], []
     degree = min(math.isqrt(sh.shape[-1]) - 1, 3)
     basis_fn = sh_basis_3dgs if basis == "3dgs" else sh_basis_mvsplat
-    jj, ii = torch.meshgrid(torch.arange(W, dtype=means.dtype), torch.arange(H, dtype=means.dtype),
-                            indexing="xy")
+    grid = {"dtype": means.dtype, "device": means.device}
+    jj, ii = torch.meshgrid(torch.arange(W, **grid), torch.arange(H, **grid), indexing="xy")
     pix_x, pix_y = (jj + 0.5).reshape(-1), (ii + 0.5).reshape(-1)  # row-major
     for bi in range(extrinsics.shape[0]):
         u, v, conic, z, radius, valid = project_ref(extrinsics[bi], intrinsics[bi], near[bi], W,

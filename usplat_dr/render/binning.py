@@ -123,6 +123,21 @@ def _min_quadratic_over_box(ca, cb, cc, dx_lo, dx_hi, dy_lo, dy_hi):
     return dr.select(inside, 0.0, best)
 
 
+def stable_bucket_order(bucket, size: int, buckets: int):
+    """The permutation that sorts ``bucket`` (``UInt32`` values < ``buckets``), keeping the input
+    order within each bucket.
+
+    On LLVM, Dr.Jit's ``block_mkperm`` (a counting sort, one block per thread) is stable and as
+    fast as a radix sort here. On CUDA it is not: its blocks place entries by atomics, and on an
+    H200 the order within a bucket broke from ~300,000 entries on (16,853 inversions of 300,000,
+    4,096 buckets), which would composite a tile's Gaussians out of depth order. CUDA uses
+    ``dr.argsort`` (a stable radix sort) instead.
+    """
+    if dr.backend_v(bucket) == dr.JitBackend.CUDA:
+        return dr.argsort(bucket)
+    return dr.detail.block_mkperm(bucket, size, buckets)
+
+
 def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, tile_base,
                   grid_x, num_tiles: int) -> Bins:
     """Expand Gaussians into (tile, Gaussian) pairs and sort them by tile, then depth.
@@ -187,7 +202,7 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     bucket = dr.select(keep, tile, num_tiles)
     dr.eval(bucket, gid)  # one pair-generation kernel for both consumers below
     buckets = 1 << num_tiles.bit_length()  # a power of two > num_tiles
-    perm_tile = dr.detail.block_mkperm(bucket, num_pairs, buckets)
+    perm_tile = stable_bucket_order(bucket, num_pairs, buckets)
     dr.scatter_reduce(dr.ReduceOp.Add, tile_count, UInt32(1), bucket, active=bucket < num_tiles)
     tile_end = dr.prefix_reduce(dr.ReduceOp.Add, tile_count, exclusive=False)
     tile_start = tile_end - tile_count
