@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.synth_sets import synthetic_set
 from usplat_dr.evaluation import depth_metrics, evaluate, synthetic_indices
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.training.checkpoints import load_model
@@ -31,15 +32,10 @@ def test_depth_metrics_by_hand():
 
 
 def test_evaluate_follows_the_protocol_and_writes_files(tmp_path, device):
-    # On every available device (CPU always, CUDA where present). Mitsuba renders the data:
-    # only a GPU machine without its wheel (`scripts/run.sh gpu-check`) skips here.
-    pytest.importorskip("mitsuba")
-    from usplat_dr.data.synth import synthesize
+    # On every available device (CPU always, CUDA where present).
     from usplat_dr.model import UniqueSplat
 
-    root = tmp_path / "data"
-    synthesize(root, scenes=2, frames=10, resolution=(32, 32), seed=3, spp=4, stage="test",
-               previews=0, progress=False, kinds=("indoor",))
+    root = synthetic_set("protocol", tmp_path / "data")
     indices = synthetic_indices(root)
     assert "standard" in indices
     torch.manual_seed(0)

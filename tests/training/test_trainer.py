@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.synth_sets import synthetic_set
 from usplat_dr.config import ConfigError, load_config
 from usplat_dr.data.dataset import dataset_from_section
-from usplat_dr.data.synth import synthesize
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.lpips import LPIPSWeightsMissing
 from usplat_dr.training import Trainer, TrainingStopped
@@ -26,14 +26,7 @@ pytestmark = pytest.mark.usefixtures("restore_threads")
 @pytest.fixture(scope="module")
 def synth_root(tmp_path_factory) -> Path:
     """Two small synthetic scenes (train and test stages) rendered by Mitsuba."""
-    # Mitsuba is a dependency (CI has it); only `scripts/run.sh gpu-check` on a GPU machine
-    # without its wheel gets here without it, where the skip is listed in the report.
-    pytest.importorskip("mitsuba")
-    root = tmp_path_factory.mktemp("synth")
-    for stage, seed in (("train", 0), ("test", 1)):
-        synthesize(root, scenes=2, frames=10, resolution=(32, 32), seed=seed, spp=4,
-                   stage=stage, previews=0, progress=False, kinds=("indoor",))
-    return root
+    return synthetic_set("trainer", tmp_path_factory.mktemp("synth"))
 
 
 def config(root: Path, out: Path, steps: int, *overrides: str) -> dict:
