@@ -168,7 +168,14 @@ def test_view_dependent_appearance_keeps_geometry(kind):
     for s in shiny["shapes"]:
         if s["name"] in GROUND:
             assert s["material"]["type"] == "glossy" and "texture" in s["material"]
-    assert shiny["integrator"] == {"type": "path", "max_depth": 4}  # reflections of the scene
+    # camera, shiny surface, what it reflects, a light: the scene's reflections
+    assert shiny["integrator"] == {"type": "path", "max_depth": 3}
+    for s in shiny["shapes"]:  # near-mirror, and a clear coat's base darker than the diffuse
+        m = s["material"]
+        if m["type"] in ("glossy", "conductor"):
+            assert 0.01 <= m["roughness"] <= 0.05
+        if m["type"] == "glossy" and "texture" in m:
+            assert m["albedo"] == 0.5
     light_types = [x["type"] for x in shiny["lights"]]
     assert "constant" not in light_types
     assert ("envmap" in light_types) == (kind != "indoor")  # a closed room sees no sky
@@ -207,3 +214,18 @@ def test_view_dependent_set_is_deterministic_with_the_same_depths(synth_set, tmp
         "view-dependent")
     with pytest.raises(ValueError, match="appearance"):
         synthesize(tmp_path / "c", **{**ARGS, "appearance": "shiny"})
+
+
+def test_a_clear_coats_base_albedo_scales_the_texture_in_linear_rgb():
+    # Mitsuba's own sRGB decoding of the 8-bit texture is the reference; 2e-7 is float32
+    # rounding of values <= 1.
+    from usplat_dr.data.synth.render import _texture, set_variant
+    from usplat_dr.data.synth.textures import make_texture, random_texture_spec
+
+    mi = set_variant("llvm")
+    spec = random_texture_spec(np.random.default_rng(0), res=16)
+    scaled = _texture(mi, {"texture": spec, "albedo": 0.5})["bitmap"]
+    assert not scaled.srgb_gamma()  # linear values: Mitsuba must not decode them again
+    linear = mi.Bitmap(make_texture(spec)).convert(mi.Bitmap.PixelFormat.RGB,
+                                                   mi.Struct.Type.Float32, srgb_gamma=False)
+    np.testing.assert_allclose(np.array(scaled), 0.5 * np.array(linear), atol=2e-7)

@@ -54,7 +54,12 @@ def intrinsics_for(fov_x_deg: float, resolution: tuple[int, int]) -> np.ndarray:
 
 def _texture(mi, material: dict) -> dict:
     s = material.get("uv_scale", 1.0)
-    return {"type": "bitmap", "bitmap": mi.Bitmap(make_texture(material["texture"])),
+    image = make_texture(material["texture"])
+    if "albedo" in material:  # scaled in linear RGB (a float32 bitmap is linear to Mitsuba)
+        c = image.astype(np.float32) / 255.0
+        linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+        image = (linear * material["albedo"]).astype(np.float32)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(image),
             "filter_type": "bilinear", "wrap_mode": "repeat",
             "to_uv": mi.ScalarTransform4f().scale([s, s, 1])}
 

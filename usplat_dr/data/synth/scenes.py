@@ -14,14 +14,14 @@ World: +Y up, metres. Cameras: OpenCV camera-to-world (see ``usplat_dr.geometry.
 Materials: ``{"type": "textured", "texture": spec, "uv_scale": s}`` (diffuse, procedural
 texture), ``{"type": "plain", "rgb": [...]}`` (textureless diffuse), ``{"type": "glossy",
 "rgb": [...], "roughness": a}`` (rough plastic: view-dependent highlights; optionally a
-``texture`` and ``uv_scale`` instead of ``rgb`` and an ``ior``) or ``{"type": "conductor",
+``texture``, ``uv_scale`` and ``albedo`` (its scale) instead of ``rgb``, and an ``ior``) or ``{"type": "conductor",
 "rgb": [...], "roughness": a}`` (a tinted rough metal: it shows what surrounds it).
 
 Appearance (``make_spec(..., appearance=)``): ``"diffuse"`` (the default: the scenes above,
 Mitsuba's ``direct`` integrator under a constant sky) or ``"view-dependent"``: the same
 geometry and cameras (the same seed), with at least half of the surfaces glossy or metallic
 (floors, terrain and turntables always), a structured environment map instead of the constant
-sky, and Mitsuba's ``path`` integrator (``max_depth`` 4), so that shiny surfaces reflect the
+sky, and Mitsuba's ``path`` integrator (``max_depth`` 3), so that shiny surfaces reflect the
 scene and the sky. Its description has ``"appearance"``, ``"integrator"`` and an ``envmap``
 light; tags gain ``view_dependent``.
 """
@@ -350,8 +350,19 @@ BUILDERS = {"indoor": indoor_room, "outdoor": outdoor_terrain, "object": object_
 
 
 #: The view-dependent appearance's shiny materials: GGX roughness, clear-coat index of
-#: refraction (F0 = ((ior - 1) / (ior + 1))^2) and the chance that a non-ground shape is metal.
-SHINY_ROUGHNESS, SHINY_IOR, METAL_CHANCE = (0.03, 0.15), (1.6, 2.2), 0.4
+#: refraction (F0 = ((ior - 1) / (ior + 1))^2), the chance that a non-ground shape is metal,
+#: and the albedo of a clear coat's diffuse base relative to the diffuse appearance's (a darker
+#: base lets what the coat reflects show). Near-mirror roughness: a sharp reflection moves
+#: with the viewpoint, and a path tracer samples it with little noise.
+SHINY_ROUGHNESS, SHINY_IOR, METAL_CHANCE, GLOSSY_BASE = (0.01, 0.05), (1.8, 2.6), 0.6, 0.5
+#: The view-dependent appearance's integrator depth (camera, shiny surface, what it reflects,
+#: a light) and environment map resolution.
+VD_MAX_DEPTH, VD_ENV_RES = 3, (64, 128)
+#: Indoor lamps grow by this factor (same power) in the view-dependent appearance.
+LAMP_SCALE = 3.0
+#: Version of the view-dependent appearance's description (2: the near-mirror materials above;
+#: 1, roughness 0.03-0.15 on a full-albedo base under a 32x64 sky, failed its acceptance).
+VD_VERSION = 2
 
 
 def _shiny(rng: np.random.Generator, material: dict, metal: bool) -> dict:
@@ -363,15 +374,17 @@ def _shiny(rng: np.random.Generator, material: dict, metal: bool) -> dict:
     out = {"type": "glossy", "roughness": roughness,
            "ior": round(float(rng.uniform(*SHINY_IOR)), 3)}
     if material["type"] == "textured":
-        out.update(texture=material["texture"], uv_scale=material.get("uv_scale", 1.0))
+        out.update(texture=material["texture"], uv_scale=material.get("uv_scale", 1.0),
+                   albedo=GLOSSY_BASE)
     else:
-        out["rgb"] = material.get("rgb", (0.2 + 0.6 * rng.random(3)).round(3).tolist())
+        rgb = np.asarray(material.get("rgb", 0.2 + 0.6 * rng.random(3)), dtype=np.float64)
+        out["rgb"] = (rgb * GLOSSY_BASE).round(3).tolist()
     return out
 
 
 def environment_spec(rng: np.random.Generator, strength: float) -> dict:
     """A structured sky (``textures.make_environment``): gradient, sun glow, bright panels."""
-    return {"type": "envmap", "seed": int(rng.integers(2**31)), "res": [32, 64],
+    return {"type": "envmap", "seed": int(rng.integers(2**31)), "res": list(VD_ENV_RES),
             "scale": round(float(strength), 3)}
 
 
@@ -394,15 +407,17 @@ def view_dependent(spec: dict, rng: np.random.Generator) -> dict:
         if light["type"] == "constant":  # the constant sky becomes a structured one
             lights.append(environment_spec(rng, 1.3 * float(np.mean(light["radiance"]))))
         elif light["type"] == "area":
-            # Twice the size at a quarter of the radiance (the same power): small bright
-            # lamps seen through glossy bounces are what makes a path tracer's fireflies.
-            to_world = np.asarray(light["to_world"]) @ scale([2.0, 2.0, 1.0])
+            # Three times the size at a ninth of the radiance (the same power): small bright
+            # lamps reached through a near-mirror bounce off a diffuse surface (caustic paths)
+            # are what makes a path tracer's fireflies.
+            to_world = np.asarray(light["to_world"]) @ scale([LAMP_SCALE, LAMP_SCALE, 1.0])
             lights.append({**light, "to_world": np.round(to_world, 6).tolist(),
-                           "radiance": round(light["radiance"] / 4, 3)})
+                           "radiance": round(light["radiance"] / LAMP_SCALE**2, 3)})
         else:
             lights.append(light)
-    return {**spec, "shapes": shapes, "lights": lights, "appearance": "view-dependent",
-            "integrator": {"type": "path", "max_depth": 4},
+    return {**spec, "version": VD_VERSION, "shapes": shapes, "lights": lights,
+            "appearance": "view-dependent",
+            "integrator": {"type": "path", "max_depth": VD_MAX_DEPTH},
             "tags": [*spec["tags"], "view_dependent"]}
 
 

@@ -98,8 +98,8 @@ def make_environment(spec: dict) -> np.ndarray:
     sun_t, sun_p = rng.uniform(0.15, 0.4) * np.pi, rng.uniform(0, 2 * np.pi)
     cos_angle = (np.cos(theta)[:, None] * np.cos(sun_t) + np.sin(theta)[:, None] * np.sin(sun_t)
                  * np.cos(phi[None] - sun_p))
-    img = img + 6.0 * np.exp((cos_angle - 1) / 0.01)[..., None] * np.array([1.0, 0.95, 0.85])
-    for _ in range(int(rng.integers(3, 7))):  # bright panels around the horizon
+    img = img + 3.0 * np.exp((cos_angle - 1) / 0.02)[..., None] * np.array([1.0, 0.95, 0.85])
+    for _ in range(int(rng.integers(6, 13))):  # bright panels around the horizon
         r0 = int(rng.integers(h // 4, h // 2))
         r1 = r0 + int(rng.integers(2, max(3, h // 5)))
         c0 = int(rng.integers(0, w))
