@@ -64,6 +64,7 @@ def run_one(args, variant: str, seed: int) -> dict:
           if model_variant == "full" and args.delta_init_std else []),
         *([f"model.overrides.{o}" for o in args.full_override] if model_variant == "full"
           else []),
+        *[f"model.overrides.{o}" for o in args.model_override],
         f"train.checkpoint_every={max(50, steps // 10)}", f"train.validate_every={steps}"])
     t0 = time.perf_counter()
     result = train(cfg, resume=True)
@@ -109,6 +110,9 @@ def main(argv=None) -> int:
                    help="fields of (c)'s model config, e.g. delta_rank=16 "
                         "'specific_layers=[to_gaussians.0,to_gaussians.2]' "
                         "(model.overrides.KEY=VALUE; only the full variant's runs)")
+    p.add_argument("--model-override", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="fields of every run's model config, e.g. "
+                        "primary.colour_sh_degree=0 (model.overrides.KEY=VALUE)")
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--out", default="outputs/verdict")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
@@ -133,9 +137,11 @@ def main(argv=None) -> int:
     if len(set(names)) != len(names):
         p.error(f"--eval-data and --also-eval need distinct folder names (their results are "
                 f"kept by name: eval_<name>), got {names}")
-    bad = [o for o in args.full_override if "=" not in o]
-    if bad:
-        p.error(f"--full-override takes KEY=VALUE pairs (fields of UniqueSplatCfg), got {bad}")
+    for flag, values in (("--full-override", args.full_override),
+                         ("--model-override", args.model_override)):
+        bad = [o for o in values if "=" not in o]
+        if bad:
+            p.error(f"{flag} takes KEY=VALUE pairs (fields of UniqueSplatCfg), got {bad}")
     if "baseline" not in args.variants:
         p.error("--variants must include baseline (the control every variant is paired with)")
     out = Path(args.out)
@@ -252,7 +258,8 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
     write_json(out / f"verdict{suffix}.json", {"args": vars(args), "held_out": where,
                                                "rows": as_dicts(rows),
                                                "equal_wall_time_rows": as_dicts(wall_rows)})
-    chart(rows, out / f"verdict{suffix}.png")
+    if rows:  # none when only (a) ran (train/sh_control.py compares two such studies)
+        chart(rows, out / f"verdict{suffix}.png")
     # the pre-registered rule's label per split, (c) - (a) on PSNR (checkpoints/verdict.json
     # holds these for the shipped protocol; the demo prints them)
     write_json(out / f"labels{suffix}.json", [
