@@ -11,8 +11,8 @@ import torch
 
 mi = pytest.importorskip("mitsuba")  # Mitsuba's plugins; a GPU image without it skips them
 
-import usplat_dr.plugins as plugins  # noqa: E402  (imports Mitsuba)
-from usplat_dr.render import RasterSettings, rasterize  # noqa: E402
+import usplat_dr.plugins as plugins  # (after the skip: it imports Mitsuba)
+from usplat_dr.render import RasterSettings, rasterize
 
 
 @pytest.fixture(autouse=True)
