@@ -113,6 +113,9 @@ def main(argv=None) -> int:
     p.add_argument("--model-override", nargs="+", default=[], metavar="KEY=VALUE",
                    help="fields of every run's model config, e.g. "
                         "primary.colour_sh_degree=0 (model.overrides.KEY=VALUE)")
+    p.add_argument("--kinds", nargs="+", default=[], choices=["indoor", "outdoor", "object"],
+                   help="compare on the held-out scenes of these kinds only (the cross-kind "
+                        "split: trained on one kind, judged on the others)")
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--out", default="outputs/verdict")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
@@ -252,8 +255,12 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
     def csvs(v):
         return [out / run_name(v, s) / eval_name / "per_scene.csv" for s in args.seeds]
 
-    rows = compare({v: csvs(v) for v in args.variants})
-    wall_rows = (compare({"baseline": csvs("baseline_wall"), "full": csvs("full")})
+    prefixes = tuple(f"{k}_" for k in args.kinds)
+    if args.kinds:
+        where += f" ({' and '.join(args.kinds)} scenes only)"
+    rows = compare({v: csvs(v) for v in args.variants}, scene_prefixes=prefixes)
+    wall_rows = (compare({"baseline": csvs("baseline_wall"), "full": csvs("full")},
+                         scene_prefixes=prefixes)
                  if args.wall_ratio and "full" in args.variants else [])
     write_json(out / f"verdict{suffix}.json", {"args": vars(args), "held_out": where,
                                                "rows": as_dicts(rows),

@@ -82,6 +82,23 @@ def test_compare_pairs_scenes_and_seeds(tmp_path):
         compare({"baseline": runs["baseline"], "full": runs["full"][:2]})
 
 
+def test_compare_keeps_only_the_scenes_of_the_kinds_asked(tmp_path):
+    # (c) gains 1 dB on object scenes and loses 1 dB on indoor ones: over both kinds the mean
+    # is 0; restricted to objects it is exactly +1 (every pair differs by exactly 1).
+    base = [{"split": "standard", "scene": f"{kind}_5000_{k:05d}", "targets": 3,
+             "psnr": 20.0 + k, "ssim": 0.6, "abs_rel": 0.2}
+            for kind in ("indoor", "object") for k in range(10)]
+    full = [{**r, "psnr": r["psnr"] + (1.0 if r["scene"].startswith("object") else -1.0)}
+            for r in base]
+    runs = {"baseline": [_write(tmp_path / "a.csv", base)],
+            "full": [_write(tmp_path / "c.csv", full)]}
+    everything = {r.metric: r for r in compare(runs, samples=200)}["psnr"]
+    objects = {r.metric: r for r in compare(runs, samples=200,
+                                            scene_prefixes=("object_",))}["psnr"]
+    assert everything.mean == pytest.approx(0.0) and everything.scenes == 20
+    assert objects.mean == pytest.approx(1.0) and objects.scenes == 10
+
+
 def test_seed_interval_is_students_t_over_the_seed_means():
     # Seed means 0.1, 0.3, 0.5 (each seed's scenes around them, one NaN left out): mean 0.3,
     # sd 0.2, t_{0.975, 2} = 4.302653 (printed tables), so 0.3 +- 4.302653 * 0.2 / sqrt(3).

@@ -150,10 +150,12 @@ def read_per_scene(path: str | os.PathLike) -> dict[tuple[str, str], dict[str, f
 
 
 def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline",
-            samples: int = 10_000) -> list[Comparison]:
+            samples: int = 10_000, scene_prefixes: tuple[str, ...] = ()) -> list[Comparison]:
     """``runs``: variant -> one ``per_scene.csv`` per seed (the same seeds, in the same order,
     for every variant). Every variant other than ``baseline`` is compared with it, per split
-    and metric, on the (split, scene) pairs all runs evaluated."""
+    and metric, on the (split, scene) pairs all runs evaluated; with ``scene_prefixes``, only
+    on scenes whose name starts with one of them (``usplat synth`` names start with the kind:
+    ``("object_", "outdoor_")``)."""
     if baseline not in runs:
         raise ValueError(f"runs must include the baseline {baseline!r}, got {sorted(runs)}")
     tables = {v: [read_per_scene(p) for p in paths] for v, paths in runs.items()}
@@ -162,6 +164,8 @@ def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline"
         raise ValueError(f"every variant needs the same number of seeds, got "
                          f"{ {v: len(t) for v, t in tables.items()} }")
     common = set.intersection(*(set(t) for ts in tables.values() for t in ts))
+    if scene_prefixes:
+        common = {k for k in common if k[1].startswith(tuple(scene_prefixes))}
     splits = sorted({s for s, _ in common}, key=lambda s: (s != "standard", s))
     rows = []
     for split in splits:
