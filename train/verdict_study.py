@@ -18,6 +18,7 @@ more held-out sets (``verdict_<set>.md``), the same runs on other scenes.
 import argparse
 import json
 import logging
+import shlex
 import subprocess
 import sys
 import time
@@ -206,18 +207,23 @@ def register(args, out: Path) -> None:
     name = args.set_name or f"standard split of {Path(args.eval_data).resolve().name}"
     path = Path(args.register)
     old = json.loads(path.read_text()) if path.is_file() else {"sets": []}
-    command = "python train/verdict_study.py " + " ".join(
-        a for a in sys.argv[1:] if not a.startswith("--register"))
+    argv, kept = sys.argv[1:], []
+    for i, a in enumerate(argv):  # the command that made the rows, without --register FILE
+        if a == "--register" or (i and argv[i - 1] == "--register") or a.startswith("--register="):
+            continue
+        kept.append(a)
+    command = "python train/verdict_study.py " + shlex.join(kept)
     rows = [{"set": name, **{k: r[k] for k in ("arm", "mean", "low", "high", "seed_low",
                                                  "seed_high", "seeds", "scenes", "label")},
-             "command": command}
+             "init": args.init, "command": command}
             for r in json.loads((out / "labels.json").read_text()) if r["split"] == "standard"]
     write_json(path, {
         "date": datetime.date.today().isoformat(),
         "rule": f"supports if (c) - (a) >= +{SUPPORT} dB with the seed-level lower bound > 0; "
                 f"refutes if the seed-level upper bound < +{REFUTE} dB; else inconclusive",
-        "protocol": "(a) continued and (c) fine-tuned from checkpoints/tiny_baseline.pt for "
-                    "the same steps, seeds and data; PSNR on the held-out set's standard split",
+        "protocol": "(a) continued and (c) fine-tuned from the same trained (a) (each row's "
+                    "init) for the same steps, seeds and data; PSNR on the held-out set's "
+                    "standard split",
         "sets": [e for e in old["sets"]
                  if (e["set"], e.get("arm")) not in {(r["set"], r["arm"]) for r in rows}]
                 + rows})
