@@ -3,11 +3,13 @@
 
 Two timings per variant: the model (encoder once, Gaussians for every target) and the model
 plus rendering the 3 targets with the Dr.Jit rasteriser (LLVM on ``--device cpu``, CUDA on
-``--device cuda``, where each timing is bracketed by ``torch.cuda.synchronize`` and memory is
-the peak the torch allocator saw in the timed runs; Dr.Jit's own CUDA memory is not in it). Times: one process builds all
-variants and alternates them run by run (a, b, c, a, b, c, ...), so machine load hits them
-alike; ``--processes`` such processes, the best median reported. Peak RSS: one process per
-variant (its own peak). Ratios are against (a) measured in the same run. The paper (A6000):
+``--device cuda``, where each timing is bracketed by ``torch.cuda.synchronize``). Times: one
+process builds all variants and alternates them run by run (a, b, c, a, b, c, ...), so machine
+load hits them alike; ``--processes`` such processes, the best median reported. Memory: on a
+CPU the peak RSS of one process per variant; on a GPU, per variant, its weights plus the peak
+the torch allocator reached above what was allocated before its call (every variant's
+weights stay resident in the timing process; Dr.Jit's own CUDA memory is not counted).
+Ratios are against (a) measured in the same run. The paper (A6000):
 (c)/(a) = 65.2 / 48.5 = 1.34, (b)/(a) = 1.002. (c) is the default model: W + Delta W on the
 four convolutions of both heads; ``--layers`` adds (c) with Delta W on fewer layers and with
 a full-rank Delta W, the cost of each choice.
@@ -91,14 +93,16 @@ def child_times(preset: str, size: int, configs: dict, device: str, repeats: int
                     synchronize(device)
                     if device == "cuda":
                         torch.cuda.reset_peak_memory_stats()
+                        before = torch.cuda.memory_allocated()
                     w, c = time.perf_counter(), time.process_time()
                     m(*args, render=render)
                     synchronize(device)
                     samples[name][0].append(time.perf_counter() - w)
                     samples[name][1].append(time.process_time() - c)
                     if device == "cuda" and render:  # one process is enough on a GPU
-                        result[name]["gib"] = max(result[name].get("gib", 0.0),
-                                                  torch.cuda.max_memory_allocated() / 2**30)
+                        weights = sum(p.numel() * p.element_size() for p in m.parameters())
+                        peak = torch.cuda.max_memory_allocated() - before + weights
+                        result[name]["gib"] = max(result[name].get("gib", 0.0), peak / 2**30)
             for name, (walls, cpus) in samples.items():
                 result[name][key] = {"wall": statistics.median(walls),
                                      "cpu": statistics.median(cpus)}

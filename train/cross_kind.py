@@ -82,7 +82,7 @@ def main(argv=None) -> int:
     for trained, scenes in results.items():
         for k in kinds:
             rows = [v for s, v in scenes.items() if s.startswith(f"{k}_")]
-            cells[(trained, k)] = {m: float(np.mean([r[m] for r in rows])) for m in
+            cells[(trained, k)] = {m: float(np.nanmean([r[m] for r in rows])) for m in
                                    ("psnr", "abs_rel")} | {"scenes": len(rows)}
     lines = [(f"(a) trained on one kind, evaluated on `{args.eval_data}` (standard split): "
              "PSNR dB / depth AbsRel, mean over each kind's scenes"), "",

@@ -48,17 +48,18 @@ def main(argv=None) -> int:
     if failed:
         raise SystemExit(f"arms {failed} failed: see {out}/<arm>.log")
 
-    from usplat_dr.evaluation.verdict import as_dicts, compare, table
+    from usplat_dr.evaluation.verdict import METRICS, as_dicts, compare, table
     from usplat_dr.io import write_json
 
     def csvs(arm):
         return [out / arm / f"baseline_seed{s}" / "eval" / "per_scene.csv" for s in args.seeds]
 
-    rows = compare({"baseline": csvs("sh2"), "sh0": csvs("sh0")})
+    rows = compare({"baseline": csvs("sh2"), "sh0": csvs("sh0")},
+                   metrics={**METRICS, "psnr_matte": True})
     write_json(out / "sh_control.json", {"args": vars(args), "rows": as_dicts(rows)})
     text = (f"(a) with SH degree 0 minus (a) with SH degree 2, fine-tuned from `{args.init}` on "
             f"`{args.data}` for {args.steps} steps, held-out `{args.eval_data}`\n\n"
-            + table(rows) + "\n")
+            + table(rows, rule=False) + "\n")
     (out / "sh_control.md").write_text(text)
     print(text)
     return 0

@@ -204,7 +204,8 @@ def register(args, out: Path) -> None:
     from usplat_dr.evaluation.verdict import REFUTE, SUPPORT
     from usplat_dr.io import write_json
 
-    name = args.set_name or f"standard split of {Path(args.eval_data).resolve().name}"
+    name = args.set_name or (f"standard split of {Path(args.eval_data).resolve().name}"
+                             + (f", {' and '.join(args.kinds)} scenes" if args.kinds else ""))
     path = Path(args.register)
     old = json.loads(path.read_text()) if path.is_file() else {"sets": []}
     argv, kept = sys.argv[1:], []

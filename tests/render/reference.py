@@ -78,7 +78,8 @@ def project_ref(c2w, K, near, W, H, means, covs):
     upper = torch.triu(covs)
     sigma = upper + upper.transpose(-1, -2) - torch.diag_embed(torch.diagonal(covs, 0, -2, -1))
     T = J @ R
-    cov2 = T @ sigma @ T.transpose(-1, -2) + 0.3 * torch.eye(2, dtype=covs.dtype, device=covs.device)
+    blur = 0.3 * torch.eye(2, dtype=covs.dtype, device=covs.device)
+    cov2 = T @ sigma @ T.transpose(-1, -2) + blur
     a, b, c = cov2[:, 0, 0], cov2[:, 0, 1], cov2[:, 1, 1]
     det = a * c - b * b
     valid = valid & (det > 0)

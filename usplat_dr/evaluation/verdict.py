@@ -138,27 +138,31 @@ def bootstrap_interval(diffs: np.ndarray, samples: int = 10_000, seed: int = 0,
     return float(np.nanquantile(means, alpha)), float(np.nanquantile(means, 1 - alpha))
 
 
-def read_per_scene(path: str | os.PathLike) -> dict[tuple[str, str], dict[str, float]]:
+def read_per_scene(path: str | os.PathLike, metrics=METRICS
+                   ) -> dict[tuple[str, str], dict[str, float]]:
     """``usplat eval``'s ``per_scene.csv`` as (split, scene) -> metric -> value."""
     out = {}
     with open(path) as f:
         for row in csv.DictReader(f):
             out[(row["split"], row["scene"])] = {
                 m: float(row[m]) if row.get(m) not in (None, "") else float("nan")
-                for m in METRICS}
+                for m in metrics}
     return out
 
 
 def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline",
-            samples: int = 10_000, scene_prefixes: tuple[str, ...] = ()) -> list[Comparison]:
+            samples: int = 10_000, scene_prefixes: tuple[str, ...] = (),
+            metrics: dict[str, bool] | None = None) -> list[Comparison]:
     """``runs``: variant -> one ``per_scene.csv`` per seed (the same seeds, in the same order,
     for every variant). Every variant other than ``baseline`` is compared with it, per split
     and metric, on the (split, scene) pairs all runs evaluated; with ``scene_prefixes``, only
     on scenes whose name starts with one of them (``usplat synth`` names start with the kind:
-    ``("object_", "outdoor_")``)."""
+    ``("object_", "outdoor_")``). ``metrics``: name -> higher is better (default ``METRICS``).
+    """
     if baseline not in runs:
         raise ValueError(f"runs must include the baseline {baseline!r}, got {sorted(runs)}")
-    tables = {v: [read_per_scene(p) for p in paths] for v, paths in runs.items()}
+    metrics = metrics or METRICS
+    tables = {v: [read_per_scene(p, metrics) for p in paths] for v, paths in runs.items()}
     seeds = {len(t) for t in tables.values()}
     if len(seeds) != 1:
         raise ValueError(f"every variant needs the same number of seeds, got "
@@ -173,7 +177,7 @@ def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline"
         for variant, ts in tables.items():
             if variant == baseline:
                 continue
-            for metric, higher in METRICS.items():
+            for metric, higher in metrics.items():
                 d = np.array([[t[k][metric] - b[k][metric] for k in keys]
                               for t, b in zip(ts, tables[baseline])])
                 if np.isnan(d).all():
@@ -187,8 +191,9 @@ def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline"
     return rows
 
 
-def table(rows: list[Comparison]) -> str:
-    """The verdict as a Markdown table."""
+def table(rows: list[Comparison], rule: bool = True) -> str:
+    """The verdict as a Markdown table (``rule``: with the pre-registered rule's label, which
+    is for (c) - (a) on PSNR only)."""
     lines = ["| split | metric | difference | mean | 95% bootstrap (scenes x seeds) | "
              "95% seed-level t | scenes x seeds | better in | verdict | rule (PSNR) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -198,7 +203,7 @@ def table(rows: list[Comparison]) -> str:
         lines.append(
             f"| {r.split} | {r.metric} | {LABELS.get(r.variant, r.variant)} - (a) | "
             f"{r.mean:+.3f} | [{r.low:+.3f}, {r.high:+.3f}] | {seed} | {r.scenes} x {r.seeds} | "
-            f"{100 * r.better_fraction:.0f}% | {r.verdict} | {r.label} |")
+            f"{100 * r.better_fraction:.0f}% | {r.verdict} | {r.label if rule else ''} |")
     return "\n".join(lines)
 
 

@@ -56,9 +56,8 @@ def _texture(mi, material: dict) -> dict:
     s = material.get("uv_scale", 1.0)
     image = make_texture(material["texture"])
     if "albedo" in material:  # scaled in linear RGB (a float32 bitmap is linear to Mitsuba)
-        c = image.astype(np.float32) / 255.0
-        linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-        image = (linear * material["albedo"]).astype(np.float32)
+        image = (srgb_to_linear(image.astype(np.float32) / 255.0)
+                 * material["albedo"]).astype(np.float32)
     return {"type": "bitmap", "bitmap": mi.Bitmap(image),
             "filter_type": "bilinear", "wrap_mode": "repeat",
             "to_uv": mi.ScalarTransform4f().scale([s, s, 1])}
@@ -141,8 +140,8 @@ def mitsuba_dict(spec: dict, resolution: tuple[int, int], spp: int, backend: str
             d[f"light{i}"] = {"type": "directional", "direction": light["direction"],
                               "irradiance": {"type": "rgb", "value": light["irradiance"]}}
         elif light["type"] == "envmap":
-            d[f"light{i}"] = {"type": "envmap", "scale": light["scale"],
-                              "bitmap": mi.Bitmap(make_environment(light))}
+            sky = make_environment({**light, "version": spec.get("version", 1)})
+            d[f"light{i}"] = {"type": "envmap", "scale": light["scale"], "bitmap": mi.Bitmap(sky)}
         elif light["type"] == "constant":
             d[f"light{i}"] = {"type": "constant", "radiance": {"type": "rgb",
                                                                "value": light["radiance"]}}
@@ -166,6 +165,11 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     """The sRGB transfer function (IEC 61966-2-1) on linear values clipped to [0, 1]."""
     x = np.clip(x, 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """The inverse of ``linear_to_srgb`` (IEC 61966-2-1) on sRGB values in [0, 1]."""
+    return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
 
 
 def trace_depth(mi, scene, c2w: np.ndarray, intrinsics: np.ndarray,

@@ -3,7 +3,7 @@
 A description ("spec") is a JSON-able dict, stored with every synthetic scene so it can be
 re-rendered at another resolution (``usplat_dr.data.synth.render.render_spec``)::
 
-    {"version": 1, "kind": "indoor" | "outdoor" | "object", "seed": int,
+    {"version": 1 | 2, "kind": "indoor" | "outdoor" | "object", "seed": int,
      "shapes": [{"name", "type": rectangle|cube|cylinder|sphere|disk|terrain,
                  "to_world": 4x4, "material": {...}, ...}],
      "lights": [{"type": area|point|directional|constant, ...}],
@@ -14,7 +14,8 @@ World: +Y up, metres. Cameras: OpenCV camera-to-world (see ``usplat_dr.geometry.
 Materials: ``{"type": "textured", "texture": spec, "uv_scale": s}`` (diffuse, procedural
 texture), ``{"type": "plain", "rgb": [...]}`` (textureless diffuse), ``{"type": "glossy",
 "rgb": [...], "roughness": a}`` (rough plastic: view-dependent highlights; optionally a
-``texture``, ``uv_scale`` and ``albedo`` (its scale) instead of ``rgb``, and an ``ior``) or ``{"type": "conductor",
+``texture``, ``uv_scale`` and ``albedo`` (its scale) instead of ``rgb``, and an ``ior``) or
+``{"type": "conductor",
 "rgb": [...], "roughness": a}`` (a tinted rough metal: it shows what surrounds it).
 
 Appearance (``make_spec(..., appearance=)``): ``"diffuse"`` (the default: the scenes above,
@@ -360,8 +361,10 @@ SHINY_ROUGHNESS, SHINY_IOR, METAL_CHANCE, GLOSSY_BASE = (0.01, 0.05), (1.8, 2.6)
 VD_MAX_DEPTH, VD_ENV_RES = 3, (64, 128)
 #: Indoor lamps grow by this factor (same power) in the view-dependent appearance.
 LAMP_SCALE = 3.0
-#: Version of the view-dependent appearance's description (2: the near-mirror materials above;
-#: 1, roughness 0.03-0.15 on a full-albedo base under a 32x64 sky, failed its acceptance).
+#: The ``version`` of a view-dependent description: 2 for the near-mirror materials above (and
+#: ``textures.make_environment``'s softer sun and more panels); 1, as every diffuse one, for
+#: its first version (roughness 0.03-0.15 on a full-albedo base under a 32x64 sky, which failed
+#: its acceptance). Stored descriptions re-render as they were made.
 VD_VERSION = 2
 
 

@@ -73,7 +73,8 @@ def make_texture(spec: dict) -> np.ndarray:
 
 def make_environment(spec: dict) -> np.ndarray:
     """The float32 [h, w, 3] linear-radiance equirectangular image of an environment spec
-    ``{"seed", "res": [h, w], "scale"}`` (row 0 the zenith, +Y up as Mitsuba's ``envmap``):
+    ``{"seed", "res": [h, w], "scale", "version"}`` (row 0 the zenith, +Y up as Mitsuba's
+    ``envmap``; ``version``: the scene description's, 1 if absent):
     a sky gradient with clouds above the horizon, darker ground with bands below, a sun glow
     and bright rectangular panels (windows, buildings), so that mirror-like surfaces reflect
     a structured surrounding that changes with the viewpoint.
@@ -98,8 +99,12 @@ def make_environment(spec: dict) -> np.ndarray:
     sun_t, sun_p = rng.uniform(0.15, 0.4) * np.pi, rng.uniform(0, 2 * np.pi)
     cos_angle = (np.cos(theta)[:, None] * np.cos(sun_t) + np.sin(theta)[:, None] * np.sin(sun_t)
                  * np.cos(phi[None] - sun_p))
-    img = img + 3.0 * np.exp((cos_angle - 1) / 0.02)[..., None] * np.array([1.0, 0.95, 0.85])
-    for _ in range(int(rng.integers(6, 13))):  # bright panels around the horizon
+    # The description's version 2 (the view-dependent appearance's second version) has a
+    # softer sun and more panels than version 1; a stored description re-renders as it was.
+    v2 = spec.get("version", 1) >= 2
+    sun, width, panels = (3.0, 0.02, (6, 13)) if v2 else (6.0, 0.01, (3, 7))
+    img = img + sun * np.exp((cos_angle - 1) / width)[..., None] * np.array([1.0, 0.95, 0.85])
+    for _ in range(int(rng.integers(*panels))):  # bright panels around the horizon
         r0 = int(rng.integers(h // 4, h // 2))
         r1 = r0 + int(rng.integers(2, max(3, h // 5)))
         c0 = int(rng.integers(0, w))
