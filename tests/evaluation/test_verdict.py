@@ -99,6 +99,27 @@ def test_compare_keeps_only_the_scenes_of_the_kinds_asked(tmp_path):
     assert objects.mean == pytest.approx(1.0) and objects.scenes == 10
 
 
+def test_compare_takes_other_metrics_with_their_direction(tmp_path):
+    # psnr_matte is not compared by default; asked for, it is read and judged higher-is-better
+    # (every pair differs by exactly +0.5, so the one-seed bootstrap interval is [0.5, 0.5]).
+    rows = [{"split": "standard", "scene": f"s{k}", "targets": 3, "psnr": 20.0, "ssim": 0.6,
+             "abs_rel": 0.2, "psnr_matte": 20.0 + k} for k in range(20)]
+    better = [{**r, "psnr_matte": r["psnr_matte"] + 0.5} for r in rows]
+
+    def write(path, table):
+        with open(path, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(table[0]))
+            w.writeheader()
+            w.writerows(table)
+        return path
+
+    runs = {"baseline": [write(tmp_path / "a.csv", rows)],
+            "full": [write(tmp_path / "c.csv", better)]}
+    assert "psnr_matte" not in {r.metric for r in compare(runs, samples=200)}
+    (matte,) = compare(runs, samples=200, metrics={"psnr_matte": True})
+    assert matte.mean == pytest.approx(0.5) and matte.verdict == "better (one seed)"
+
+
 def test_seed_interval_is_students_t_over_the_seed_means():
     # Seed means 0.1, 0.3, 0.5 (each seed's scenes around them, one NaN left out): mean 0.3,
     # sd 0.2, t_{0.975, 2} = 4.302653 (printed tables), so 0.3 +- 4.302653 * 0.2 / sqrt(3).

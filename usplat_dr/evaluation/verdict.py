@@ -36,8 +36,11 @@ from usplat_dr.io import atomic_open
 
 log = logging.getLogger(__name__)
 
-#: Metrics compared, and whether higher is better.
+#: Metrics compared by default, and whether higher is better.
 METRICS = {"psnr": True, "ssim": True, "abs_rel": False, "psnr_shiny": True}
+#: Whether higher is better, for every metric of ``per_scene.csv`` a comparison may ask for.
+HIGHER_IS_BETTER = {**METRICS, "psnr_matte": True, "lpips": False, "rmse": False,
+                    "delta1": True}
 LABELS = {"baseline": "(a)", "agnostic": "(b)", "full": "(c)"}
 MIN_PAIRS = 5
 #: The pre-registered rule on PSNR (dB): supports when mean >= SUPPORT and the seed-level
@@ -76,8 +79,8 @@ class Comparison:
         if self.scenes * self.seeds < MIN_PAIRS:
             return "too few scenes"
         low, high = self.decisive
-        good = low > 0 if METRICS[self.metric] else high < 0
-        bad = high < 0 if METRICS[self.metric] else low > 0
+        good = low > 0 if HIGHER_IS_BETTER[self.metric] else high < 0
+        bad = high < 0 if HIGHER_IS_BETTER[self.metric] else low > 0
         word = "better" if good else "worse" if bad else "no difference shown"
         return word if self.seeds >= 2 else f"{word} (one seed)"
 
@@ -233,7 +236,7 @@ def chart(rows: list[Comparison], path: str | os.PathLike) -> Path:
         ax.axvline(0, color="k", linewidth=0.8)
         ax.set_yticks(range(len(sel)), labels, fontsize=7)
         ax.invert_yaxis()
-        better = "higher is better" if METRICS[metric] else "lower is better"
+        better = "higher is better" if HIGHER_IS_BETTER[metric] else "lower is better"
         ax.set(xlabel=f"{metric}: variant - (a) ({better})\n"
                       "thick: bootstrap; thin: seed-level t")
         ax.grid(alpha=0.3, axis="x")
