@@ -110,14 +110,15 @@ def child_times(preset: str, size: int, configs: dict, device: str, repeats: int
         json.dump(result, f)
 
 
-def child_memory(preset: str, size: int, cfg: list, device: str, out: str) -> None:
+def child_memory(preset: str, size: int, cfg: list, out: str) -> None:
+    """Peak RSS of one variant on the CPU (on a GPU, ``child_times`` reads the memory)."""
     import resource
 
     import torch
 
-    model = build(preset, *cfg).to(device)
+    model = build(preset, *cfg)
     with torch.inference_mode():
-        model(*scene(size, device), render=True)
+        model(*scene(size), render=True)
     with open(out, "w") as f:
         json.dump({"rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}, f)
 
@@ -174,7 +175,7 @@ def main() -> None:
             if args.device == "cuda":  # the allocator's peak, read in the timing process
                 rss = {name: max(r[name]["gib"] for r in runs) for name in configs}
             else:  # RSS: one process per variant (its own peak)
-                rss = {name: run_child("memory", [preset, size, list(cfg), args.device], 0,
+                rss = {name: run_child("memory", [preset, size, list(cfg)], 0,
                                        f"{tmp}/m.json", args.threads)["rss_gib"]
                        for name, cfg in configs.items()}
         where = (f"{args.threads} thread(s)" if args.device == "cpu"
