@@ -44,8 +44,54 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 
+#: A config expands to at most this many YAML nodes (aliases counted each time they are
+#: used): the shipped ones have ~300; nested aliases ("billion laughs") would otherwise
+#: expand to ~10^9 objects before any check. And at most this many characters.
+MAX_YAML_NODES = 100_000
+MAX_YAML_CHARS = 1_000_000
+
+
 def parse(text: str):
-    return yaml.load(text, Loader=_Loader)
+    """YAML ``text`` to Python data; ``yaml.YAMLError`` for text that does not parse or that
+    would expand past ``MAX_YAML_NODES`` (aliases) or ``MAX_YAML_CHARS``."""
+    if len(text) > MAX_YAML_CHARS:
+        raise yaml.YAMLError(f"{len(text):,} characters, more than a config may hold "
+                             f"({MAX_YAML_CHARS:,})")
+    loader = _Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        size = _expanded_size(node, {}, set())
+        if size > MAX_YAML_NODES:
+            raise yaml.YAMLError(f"its aliases expand to {size:,} nodes, more than a config "
+                                 f"may hold ({MAX_YAML_NODES:,}): write the values out")
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def _expanded_size(node: yaml.Node, memo: dict[int, int], open_: set[int]) -> int:
+    """The nodes ``node`` stands for with every alias expanded (memoised, so a shared node is
+    counted once per use without walking it again); a node that contains itself is refused.
+    Stops adding at ``MAX_YAML_NODES`` + 1 (the sum can otherwise reach 10^100)."""
+    if id(node) in memo:
+        return memo[id(node)]
+    if id(node) in open_:
+        raise yaml.YAMLError("a recursive alias (a node that contains itself)")
+    open_.add(id(node))
+    size = 1
+    if isinstance(node, yaml.SequenceNode):
+        children = node.value
+    elif isinstance(node, yaml.MappingNode):
+        children = [n for pair in node.value for n in pair]
+    else:
+        children = []
+    for child in children:
+        size = min(size + _expanded_size(child, memo, open_), MAX_YAML_NODES + 1)
+    open_.discard(id(node))
+    memo[id(node)] = size
+    return size
 
 
 class ConfigError(ValueError):
@@ -157,7 +203,7 @@ def apply_override(cfg: dict, override: str, origins: dict[str, str] | None = No
     key, raw = override.split("=", 1)
     try:
         value = parse(raw) if raw != "" else ""
-    except yaml.YAMLError as e:
+    except (yaml.YAMLError, RecursionError) as e:
         raise ConfigError(f"override {override!r}: value is not valid YAML ({e})") from e
     parts = key.strip().split(".")
     node = cfg

@@ -21,6 +21,7 @@ import io
 import json
 import logging
 import os
+import stat
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from PIL import Image
 from torch import Tensor
 
 from usplat_dr.io import torch_save, write_json
+from usplat_dr.io.checkpoint_files import check_torch_archive
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +80,15 @@ def cameras_to_matrices(
     intrinsics[:, 2, 2] = 1.0
     if (fx <= 0).any() or (fy <= 0).any():
         raise BadSceneError("cameras have a non-positive focal length")
+    # Finite but absurd values overflow float32 in the model (squared distances, projected
+    # positions): normalised intrinsics beyond 1e4 (a field of view under 0.006 degrees) and
+    # positions beyond 1e6 scene units are a corrupt record, not a camera.
+    if (cameras[:, :4].abs() > 1e4).any():
+        raise BadSceneError(f"camera intrinsics beyond 1e4 (normalised by the image size): "
+                            f"{cameras[:, :4].abs().max().item():.3g}")
+    if (cameras[:, 6:].abs() > 1e6).any():
+        raise BadSceneError(f"a camera pose entry beyond 1e6: "
+                            f"{cameras[:, 6:].abs().max().item():.3g}")
     w2c = torch.eye(4).repeat(v, 1, 1)
     w2c[:, :3] = cameras[:, 6:].reshape(v, 3, 4)
     rot = w2c[:, :3, :3].double()
@@ -129,17 +140,23 @@ def encode_image(image: UInt8[np.ndarray, "h w 3"], fmt: str = "png",
 MAX_IMAGE_PIXELS = 8192 * 8192
 
 
-def decode_image(data: object) -> UInt8[Tensor, "3 h w"]:
-    """Decode one encoded image (uint8 1-D tensor) to uint8 [3, H, W] RGB.
+#: The formats frames are decoded as: the field's (pixelSplat's chunks hold JPEG; ours PNG).
+#: Pillow would otherwise try every format it knows, EPS among them, which runs Ghostscript.
+IMAGE_FORMATS = ("PNG", "JPEG")
 
-    Raises ``BadSceneError`` when the bytes are not a readable image (or claim more than
-    ``MAX_IMAGE_PIXELS`` pixels)."""
-    if not isinstance(data, Tensor) or data.dtype != torch.uint8 or data.ndim != 1:
+
+def decode_image(data: object) -> UInt8[Tensor, "3 h w"]:
+    """Decode one encoded image (uint8 1-D tensor of PNG or JPEG bytes) to uint8 [3, H, W]
+    RGB; 16-bit PNGs are scaled to 8 bits (x 255 / 65535, rounded).
+
+    Raises ``BadSceneError`` when the bytes are not a readable PNG or JPEG (or claim more
+    than ``MAX_IMAGE_PIXELS`` pixels)."""
+    if not is_plain(data) or data.dtype != torch.uint8 or data.ndim != 1:
         raise BadSceneError("an image is not a uint8 1-D tensor of encoded bytes")
     # Pillow's format plugins raise many kinds of errors on damaged bytes (OSError,
     # SyntaxError, struct.error, DecompressionBombError, ...): each means "not decodable"
     try:
-        im = Image.open(io.BytesIO(data.numpy().tobytes()))
+        im = Image.open(io.BytesIO(data.numpy().tobytes()), formats=IMAGE_FORMATS)
     except Exception as e:
         raise BadSceneError(f"an image cannot be decoded ({type(e).__name__}: {e})") from e
     with im:
@@ -148,11 +165,27 @@ def decode_image(data: object) -> UInt8[Tensor, "3 h w"]:
             raise BadSceneError(f"an image claims {w}x{h} pixels (more than "
                                 f"{MAX_IMAGE_PIXELS:,}): a corrupt header")
         try:
-            arr = np.asarray(im.convert("RGB"))
+            arr = _to_rgb8(im)
         except Exception as e:
             raise BadSceneError(f"an image cannot be decoded ({type(e).__name__}: {e})"
                                 ) from e
     return torch.from_numpy(arr.copy()).permute(2, 0, 1)
+
+
+def _to_rgb8(im: Image.Image) -> np.ndarray:
+    """[H, W, 3] uint8 of a decoded image. Pillow's ``convert("RGB")`` clips 16-bit grey
+    ("I;16", or "I" from older Pillow) at 255 instead of scaling it."""
+    if im.mode.startswith("I;16") or im.mode == "I":
+        grey = np.clip(np.asarray(im).astype(np.float64), 0, 65535) * (255.0 / 65535.0)
+        return np.repeat(np.rint(grey).astype(np.uint8)[..., None], 3, axis=-1)
+    return np.asarray(im.convert("RGB"))
+
+
+def is_plain(t: object) -> bool:
+    """A tensor the readers can use: dense (strided) and on the CPU; a sparse, meta or
+    quantised tensor in a record makes the scene malformed."""
+    return (isinstance(t, Tensor) and t.layout == torch.strided and t.device.type == "cpu"
+            and not t.is_quantized)
 
 
 # ---- Chunks and index ----
@@ -170,6 +203,10 @@ def check_scene(scene: object) -> None:
         if not isinstance(scene[key], typ):
             raise BadSceneError(f"scene[{key!r}] is a {type(scene[key]).__name__}, "
                                 f"expected {typ.__name__}")
+    for key, value in scene.items():
+        if isinstance(value, Tensor) and not is_plain(value):
+            raise BadSceneError(f"scene[{key!r}] is a {value.layout} tensor on "
+                                f"{value.device}, not a dense CPU tensor")
     v = len(scene["images"])
     if scene["cameras"].shape != (v, 18):
         raise BadSceneError(f"cameras have shape {tuple(scene['cameras'].shape)}, expected "
@@ -189,6 +226,10 @@ def read_chunk(path: str | os.PathLike) -> list:
     """Load one chunk (a list of scene records, each checked later by ``check_scene``). Raises
     ``BadChunkError`` when it is unreadable."""
     path = Path(path)
+    try:
+        check_torch_archive(path, "chunk")
+    except ValueError as e:
+        raise BadChunkError(str(e)) from None
     try:
         chunk = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:  # truncated zip, pickle errors, I/O errors: all mean "unreadable"
@@ -217,6 +258,8 @@ def read_index(stage_dir: str | os.PathLike) -> dict[str, str]:
                                 "usplat_dr.data.chunks.write_index)")
     try:
         index = json.loads(path.read_text(encoding="utf-8"))
+    except RecursionError:  # JSON nested deeper than Python's recursion limit
+        raise ValueError(f"{path} is nested too deeply to be an index.json") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path} is not valid JSON ({e}); rebuild it with "
                          f"usplat_dr.data.chunks.write_index(stage_dir, index_chunks(stage_dir))"
@@ -312,6 +355,24 @@ def _nbytes(obj: object) -> int:
     return 64
 
 
+def _chunk_file_ok(path: Path, root: Path) -> bool:
+    """False, with a warning, for a chunk name that is not a regular file (a FIFO would block
+    every reader) or that links outside ``root`` (refused like a ``../`` name)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as e:
+        log.warning("skipping chunk %s: cannot be read (%s)", path, e.strerror)
+        return False
+    if not stat.S_ISREG(mode):
+        log.warning("skipping chunk %s: not a regular file (a FIFO, device or folder)", path)
+        return False
+    if not path.resolve().is_relative_to(root.resolve()):
+        log.warning("skipping chunk %s: it links to %s, outside the dataset root %s (copy the "
+                    "chunk into the root, or link the whole root)", path, path.resolve(), root)
+        return False
+    return True
+
+
 def stage_chunks(roots: Iterable[str | os.PathLike], stage: str) -> list[Path]:
     """All chunk files of ``stage`` under the given roots, in order. Clear errors for a missing
     root or an empty stage."""
@@ -322,7 +383,7 @@ def stage_chunks(roots: Iterable[str | os.PathLike], stage: str) -> list[Path]:
             raise FileNotFoundError(f"dataset root {root} does not exist (check the 'roots' "
                                     "setting; it should hold train/ and test/ folders)")
         stage_dir = root / stage
-        found = sorted(stage_dir.glob("*.torch"))
+        found = [p for p in sorted(stage_dir.glob("*.torch")) if _chunk_file_ok(p, root)]
         if not found:
             raise FileNotFoundError(f"{stage_dir} holds no .torch chunks: the stage '{stage}' is "
                                     f"empty or missing under {root}")

@@ -117,12 +117,19 @@ def dataset_cfg(name: str, roots, **overrides) -> DatasetCfg:
                       **{**PRESETS[name], **overrides})
 
 
+#: Scene near/far planes outside this range are skipped: depth is sampled in disparity from
+#: 1/far to 1/near, and Gaussian means reach ``far`` x the ray length, so values like 1e-30
+#: or 1e30 (finite, but absurd) overflow float32 in the model. The field's: RE10K 1/100,
+#: DTU 2.125/4.525; a scene in millimetres fits too.
+NEAR_FAR_RANGE = (1e-6, 1e6)
+
+
 class Summary(collections.Counter):
     """Counts of examples and skip reasons over one pass."""
 
     WARN = ("unreadable chunk", "malformed scene", "bad camera", "corrupt image",
             "not in index.json", "missing chunk file", "bad depth", "not in its chunk",
-            "chunk not in index.json", "frames not in scene")
+            "chunk not in index.json", "frames not in scene", "duplicate key")
 
     def line(self) -> str:
         skips = ", ".join(f"{n} {k}" for k, n in sorted(self.items()) if k != "examples")
@@ -155,12 +162,16 @@ class ChunkDataset(IterableDataset):
         # Validation reads the test folder (the field's convention).
         self.data_stage = "train" if stage == "train" else "test"
         self.chunks = stage_chunks(cfg.roots, self.data_stage)
+        self._chunk_set = set(self.chunks)
         self.index: dict[str, Path] = {}
         self.missing_chunks: list[tuple[str, Path]] = []
         for root in cfg.roots:
             stage_dir = Path(root) / self.data_stage
             for key, name in read_index(stage_dir).items():
                 path = stage_dir / name
+                if key in self.index:
+                    log.warning("scene %s is in the index of %s and of an earlier root (%s): "
+                                "read once, from %s", key, stage_dir, self.index[key], path)
                 self.index[key] = path
                 if not path.is_file():
                     self.missing_chunks.append((key, path))
@@ -253,8 +264,16 @@ class ChunkDataset(IterableDataset):
                 continue
             order = (torch.randperm(len(scenes), generator=gen).tolist()
                      if self.stage == "train" else range(len(scenes)))
+            seen: set[str] = set()
             for i in order:
                 scene = scenes[i]
+                key = scene.get("key") if isinstance(scene, dict) else None
+                if isinstance(key, str) and key in seen:
+                    log.warning("skipping scene %s in %s: duplicate key (a second record of it "
+                                "in the same chunk)", key, chunk_path)
+                    summary["duplicate key"] += 1
+                    continue
+                seen.add(key)
                 if wanted is not None:
                     key = scene.get("key") if isinstance(scene, dict) else None
                     if isinstance(key, str) and key in wanted:
@@ -302,6 +321,10 @@ class ChunkDataset(IterableDataset):
             return skip("malformed scene", str(e))
         if key not in self.index:
             return skip("not in index.json")
+        if self.index[key] != chunk_path and self.index[key] in self._chunk_set:
+            # the copy index.json points to is read too (an index naming a missing chunk is
+            # answered by the copy that exists)
+            return skip("duplicate key", f"index.json places this key in {self.index[key]}")
         try:
             extrinsics, intrinsics = cameras_to_matrices(scene["cameras"].float())
         except BadSceneError as e:
@@ -322,8 +345,9 @@ class ChunkDataset(IterableDataset):
                 near, far = (float(x) for x in scene["near_far"])
             except (TypeError, ValueError, RuntimeError) as e:
                 return skip("malformed scene", f"near_far is not two numbers ({e})")
-            if not (math.isfinite(near) and math.isfinite(far) and 0 < near < far):
-                return skip("malformed scene", f"near_far must be 0 < near < far, got "
+            if not (NEAR_FAR_RANGE[0] <= near < far <= NEAR_FAR_RANGE[1]):
+                return skip("malformed scene", f"near_far must be {NEAR_FAR_RANGE[0]:g} <= "
+                                                f"near < far <= {NEAR_FAR_RANGE[1]:g}, got "
                                                 f"{near}, {far}")
         else:
             near, far = self.cfg.near, self.cfg.far
@@ -370,7 +394,10 @@ class ChunkDataset(IterableDataset):
         if self.stage == "train" and self.cfg.augment:
             example = augment_flip(example, gen)
         for side in ("context", "target"):
-            v = crop_views(example[side], self.cfg.image_shape)
+            try:
+                v = crop_views(example[side], self.cfg.image_shape)
+            except ValueError as e:
+                return skip("malformed scene", str(e))
             v["image"] = v["image"].float() / 255.0
             example[side] = v
         return example

@@ -52,6 +52,11 @@ def _resize(image: Tensor, shape: tuple[int, int]) -> Tensor:
     return torch.from_numpy(np.asarray(out).copy()).to(image.dtype)
 
 
+#: An image is resized to cover the model's shape before the centre crop: a 1 x 4,000,000
+#: frame would become 32 x 128,000,000 for a 32x32 crop. Beyond this, the scene is skipped.
+MAX_RESIZED_PIXELS = 8192 * 8192
+
+
 def rescale_and_crop(
     images: Tensor,  # uint8 [V, 3, H, W] (Lanczos) or float [V, H, W] depth (nearest)
     intrinsics: Float[Tensor, "view 3 3"],
@@ -71,6 +76,9 @@ def rescale_and_crop(
     h_out, w_out = shape
     scale = max(h_out / h_in, w_out / w_in)
     h_scaled, w_scaled = round(h_in * scale), round(w_in * scale)
+    if h_scaled * w_scaled > MAX_RESIZED_PIXELS:
+        raise ValueError(f"a {h_in}x{w_in} image would be resized to {h_scaled}x{w_scaled} "
+                         f"to cover {h_out}x{w_out}: more than {MAX_RESIZED_PIXELS:,} pixels")
     if (h_scaled, w_scaled) != (h_in, w_in):
         images = torch.stack([_resize(im, (h_scaled, w_scaled)) for im in images])
     row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2

@@ -191,6 +191,9 @@ def read_evaluation_index(path: str | os.PathLike) -> dict[str, dict | None]:
         raise FileNotFoundError(f"evaluation index {path} does not exist (index_path)")
     try:
         index = json.loads(path.read_text(encoding="utf-8"))
+    except RecursionError:  # JSON nested deeper than Python's recursion limit
+        raise ValueError(f"evaluation index {path} is nested too deeply to be an index"
+                         ) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"evaluation index {path} is not valid JSON ({e})") from None
     if not isinstance(index, dict):

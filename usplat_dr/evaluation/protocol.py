@@ -31,7 +31,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import read_evaluation_index
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.metrics import psnr, ssim
-from usplat_dr.io import write_json
+from usplat_dr.io import atomic_open, write_json
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +132,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
             rows.append(row)
             scenes.append(row)
             if i < images_per_split:
-                save_comparison(out / "renders" / split / f"{example['scene']}.png", batch,
-                                result)
+                save_comparison(out / "renders" / split, batch, result)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(psnr=f"{statistics.mean(r['psnr'] for r in scenes):.2f}")
@@ -162,7 +161,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         peak_memory_gib=peak_memory_gib(device), device=str(device))
     fields = ["split", "scene", "targets", "psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1",
               "psnr_shiny", "psnr_matte"]
-    with open(out / "per_scene.csv", "w", newline="") as f:
+    with atomic_open(out / "per_scene.csv", "w") as f:
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)
@@ -198,7 +197,7 @@ def synthetic_indices(root: str | Path, splits=None) -> dict[str, str]:
         found = {s: found[s] for s in splits}
     # skip splits without scenes
     return {s: p for s, p in found.items()
-            if any(v is not None for v in json.loads(Path(p).read_text()).values())}
+            if any(v is not None for v in read_evaluation_index(p).values())}
 
 
 def load_example(dataset: dict, index: str, scene: str | None = None) -> dict:

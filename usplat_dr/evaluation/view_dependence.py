@@ -36,6 +36,7 @@ from usplat_dr.data.chunks import cameras_to_matrices, decode_image, read_chunk,
 from usplat_dr.data.synth.render import CONDUCTOR, GLOSSY, MATTE
 from usplat_dr.geometry.cameras import pixel_directions
 from usplat_dr.io.images import save_png
+from usplat_dr.io.names import safe_stem
 
 #: Material classes of the meter: name -> material codes of ``usplat synth``'s maps.
 CLASSES = {"diffuse": MATTE, "glossy": (GLOSSY,), "metal": (CONDUCTOR,)}
@@ -188,7 +189,8 @@ def write_error_images(root: str | os.PathLike, index: dict, out: str | os.PathL
         warped, valid = warp_into(depths[t], c2w[t], k[t], img[c], depths[c], c2w[c], k[c])
         diff = np.clip(4 * np.abs(warped - img[t]), 0, 1) * valid[..., None]
         mats = palette[np.clip(scene["materials"].numpy()[t], 0, len(palette) - 1)]
-        path = Path(out) / f"{scene['key']}.png"
-        save_png(path, np.concatenate([img[t], warped, diff, mats], 1))
+        path = Path(out) / f"{safe_stem(scene['key'])}.png"
+        save_png(path, np.concatenate([img[t], warped, diff, mats], 1),
+                 text={"scene": scene["key"]})
         written.append(path)
     return written

@@ -8,6 +8,8 @@ can execute arbitrary code. Full unpickling happens only when the caller opts in
 
 import os
 import pickle
+import stat
+import zipfile
 from pathlib import Path
 
 import torch
@@ -18,14 +20,38 @@ class UntrustedCheckpointError(ValueError):
     tensors and plain data, which could run code when loaded."""
 
 
+def check_torch_archive(path: Path, what: str) -> None:
+    """``ValueError`` unless ``path`` is a regular file whose zip records (when it is a zip:
+    ``torch.save``'s format) are all stored uncompressed. ``torch.save`` never compresses, and
+    ``torch.load`` inflates a deflated record in full before any check: a 4 MB file could
+    unpack to 4 GB. A FIFO or device would block or never end: refused too."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as e:
+        raise ValueError(f"{what} {str(path)!r} cannot be read ({e.strerror})") from None
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{what} {str(path)!r} is not a regular file (a FIFO, device or "
+                         "folder)")
+    try:
+        with zipfile.ZipFile(path) as z:
+            packed = [i.filename for i in z.infolist() if i.compress_type != zipfile.ZIP_STORED]
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError):
+        return  # not a zip (torch's legacy format, or damage torch.load reports itself)
+    if packed:
+        raise ValueError(f"{what} {str(path)!r} holds compressed records ({packed[0]!r}, "
+                         f"{len(packed)} in all), which torch.save never writes: refused "
+                         "(re-save it with torch.save)")
+
+
 def load_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_location="cpu",
                     trust: bool = False, trust_hint: str = "trust_checkpoint=True"):
     """``torch.load`` ``path`` safely (``weights_only=True``); ``trust=True`` allows full
     unpickling. Errors name ``what``, the file and, for refused files, the opt-in
     (``trust_hint``: the argument or flag that sets ``trust``)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"{what} {str(path)!r} does not exist")
+    check_torch_archive(path, what)
     if trust:
         return torch.load(path, map_location=map_location, weights_only=False)
     try:

@@ -1,10 +1,12 @@
 """Writing renders as images: PNG (atomically), depth colour maps, contact sheets."""
 
+import json
 import os
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from PIL.PngImagePlugin import PngInfo
 
 from usplat_dr.io.atomic import atomic_open
 
@@ -46,10 +48,19 @@ def colorize_depth(depth: np.ndarray, alpha: np.ndarray | None = None, near: flo
     return np.where(mask[..., None], rgb, 0.0)
 
 
-def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write [H, W] or [H, W, 3] floats in [0, 1] as PNG, atomically (temp file + rename)."""
+def save_png(path: str | os.PathLike, image: np.ndarray,
+             text: dict[str, str] | None = None) -> Path:
+    """Write [H, W] or [H, W, 3] floats in [0, 1] as PNG, atomically (temp file + rename).
+
+    ``text``: PNG text entries (``{"scene": key}`` keeps a scene's key inside its file; values
+    are stored JSON-quoted, so any string, NUL bytes included, survives)."""
+    info = None
+    if text:
+        info = PngInfo()
+        for k, v in text.items():
+            info.add_itxt(k, json.dumps(v))
     with atomic_open(path, "wb") as f:
-        Image.fromarray(to_uint8(image)).save(f, format="PNG")
+        Image.fromarray(to_uint8(image)).save(f, format="PNG", pnginfo=info)
     return Path(path)
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from usplat_dr.io.atomic import atomic_open
+from usplat_dr.io.atomic import atomic_open, refuse_special
 from usplat_dr.io.images import to_uint8
 
 
@@ -20,6 +20,7 @@ def write_video(frames: np.ndarray, path: str | os.PathLike, fps: int = 20) -> P
     h, w = data.shape[1:3]
     if shutil.which("ffmpeg"):
         target = path.with_suffix(".mp4")
+        refuse_special(target)
         tmp = target.with_name(f".{target.name}.tmp.mp4")
         cmd = ["ffmpeg", "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24",
                "-s", f"{w}x{h}", "-r", str(fps), "-i", "-", "-pix_fmt", "yuv420p",

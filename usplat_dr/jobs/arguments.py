@@ -1,6 +1,9 @@
 """Argument types shared by the jobs' parsers: a bad value is a usage error from argparse."""
 
 import argparse
+import os
+import stat
+from pathlib import Path
 
 
 def at_least(minimum: int):
@@ -29,3 +32,28 @@ def at_least(minimum: int):
 
 positive_int = at_least(1)
 non_negative_int = at_least(0)
+
+
+def out_folder(text: str) -> str:
+    """An argparse ``type``: a folder to write into (it may not exist yet); an existing file
+    there is a usage error, not a traceback from ``mkdir``."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is an existing file, not a folder: name a "
+                                         "folder to write into")
+    return text
+
+
+def out_file(text: str) -> str:
+    """An argparse ``type``: a file to write (created or replaced); a folder, device or FIFO
+    there is a usage error (it is never replaced)."""
+    try:
+        mode = os.stat(text).st_mode
+    except FileNotFoundError:
+        return text
+    except OSError as e:
+        raise argparse.ArgumentTypeError(f"{text!r}: {e.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise argparse.ArgumentTypeError(f"{text!r} exists and is not a regular file (a "
+                                         "folder, device or FIFO): name a new file")
+    return text

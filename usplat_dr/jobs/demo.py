@@ -145,8 +145,7 @@ def worst_cases(out: Path, b: Budget, variant: str, checkpoint: Path) -> dict:
         batch = load_example(dataset, indices[split], worst["scene"])
         with torch.no_grad():
             result = model(*model_inputs(batch, torch.device("cpu")))
-        found[split] = save_comparison(
-            out / f"eval_shipped_{variant}" / "worst" / f"{split}_{worst['scene']}.png", batch,
-            result)
+        found[split] = save_comparison(out / f"eval_shipped_{variant}" / "worst", batch, result,
+                                       prefix=f"{split}_")
         found[split + "_psnr"] = float(worst["psnr"])
     return found

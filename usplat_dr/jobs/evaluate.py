@@ -10,6 +10,7 @@ import torch
 from usplat_dr import portable
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
+from usplat_dr.jobs.arguments import out_folder
 from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
 from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import load_model
@@ -39,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips-vgg", help="torchvision vgg16-397923af.pth (for LPIPS)")
     p.add_argument("--lpips-lin", help="lpips/weights/v0.1/vgg.pth (for LPIPS)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    p.add_argument("--out", default="outputs/eval")
+    p.add_argument("--out", type=out_folder, default="outputs/eval")
 
 
 def warn_slow_bfloat16() -> None:

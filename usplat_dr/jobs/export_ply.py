@@ -6,15 +6,16 @@ import argparse
 import torch
 
 from usplat_dr.data.types import model_inputs
+from usplat_dr.jobs.arguments import non_negative_int, out_file
 from usplat_dr.jobs.render_video import add_example_arguments, one_example
 from usplat_dr.model.ply import write_ply
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_example_arguments(p)
-    p.add_argument("--target", type=int, default=0, help="target view index")
+    p.add_argument("--target", type=non_negative_int, default=0, help="target view index")
     p.add_argument("--min-opacity", type=float, default=0.0)
-    p.add_argument("--out", default="outputs/export/gaussians.ply")
+    p.add_argument("--out", type=out_file, default="outputs/export/gaussians.ply")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -30,7 +30,8 @@ from usplat_dr.geometry.cameras import pixel_directions
 from usplat_dr.geometry.quaternions import quat_xyzw_to_matrix
 from usplat_dr.io import write_json
 from usplat_dr.io.images import save_png
-from usplat_dr.jobs.arguments import at_least, positive_int
+from usplat_dr.io.names import safe_stem
+from usplat_dr.jobs.arguments import at_least, out_folder, positive_int
 from usplat_dr.render import rasterize
 from usplat_dr.render.scenes import covariances_from
 from usplat_dr.render.sh import C0
@@ -224,10 +225,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kind", default="indoor", choices=KINDS)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--frames", type=at_least(4), default=24)
-    p.add_argument("--resolution", type=int, nargs=2, default=[64, 64], metavar=("H", "W"))
-    p.add_argument("--spp", type=int, default=256, help="Mitsuba samples per pixel")
+    p.add_argument("--resolution", type=at_least(4), nargs=2, default=[64, 64],
+                   metavar=("H", "W"))
+    p.add_argument("--spp", type=positive_int, default=256, help="Mitsuba samples per pixel")
     p.add_argument("--iterations", type=positive_int, default=1500)
-    p.add_argument("--out", default="outputs/fit", help="folder for the PNG and JSON")
+    p.add_argument("--out", type=out_folder, default="outputs/fit", help="folder for the PNG and JSON")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -246,12 +248,12 @@ def run(args: argparse.Namespace) -> int:
         record = scene_record(key, spec, images, depths, materials, k)
     out = Path(args.out)
     cfg = FitCfg(iterations=args.iterations, seed=args.seed)
-    result = fit(views_from_record(record), cfg, out_png=out / f"fit_{key}.png",
-                 progress=not args.quiet)
-    write_json(out / f"fit_{key}.json", {"scene": key, **result.__dict__})
+    png = out / f"fit_{safe_stem(key)}.png"
+    result = fit(views_from_record(record), cfg, out_png=png, progress=not args.quiet)
+    write_json(png.with_suffix(".json"), {"scene": key, **result.__dict__})
     print(f"{key}: held-out PSNR {result.psnr_before:.2f} -> {result.psnr_after:.2f} dB, "
           f"SSIM {result.ssim_before:.3f} -> {result.ssim_after:.3f}, "
           f"{result.num_gaussians} Gaussians, {result.seconds:.0f} s "
-          f"(renders: {out / f'fit_{key}.png'})")
+          f"(renders: {png})")
     print(json.dumps({"psnr": round(result.psnr_after, 3)}))
     return 0

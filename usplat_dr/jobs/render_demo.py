@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from usplat_dr.io.images import colorize_depth, grid, save_png
-from usplat_dr.jobs.arguments import positive_int
+from usplat_dr.jobs.arguments import out_folder, positive_int
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.scenes import covariances_from, orbit_cameras, random_rotations, sh_from_rgb
 
@@ -110,7 +110,7 @@ def render_demo(out: Path, size: int = 256, views: int = 6, device: str = "cpu",
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="outputs/render-demo", help="output folder")
+    p.add_argument("--out", type=out_folder, default="outputs/render-demo", help="output folder")
     p.add_argument("--size", type=positive_int, default=256,
                    help="image height and width in pixels")
     p.add_argument("--views", type=positive_int, default=6, help="number of cameras on the orbit")

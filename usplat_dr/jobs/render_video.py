@@ -15,7 +15,7 @@ from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.camera_paths import camera_path
 from usplat_dr.io.images import colorize_depth
 from usplat_dr.io.video import write_video
-from usplat_dr.jobs.arguments import positive_int
+from usplat_dr.jobs.arguments import at_least, out_folder, positive_int
 from usplat_dr.training.checkpoints import load_model, training_image_shape
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
@@ -64,8 +64,8 @@ def one_example(args: argparse.Namespace) -> tuple:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_example_arguments(p)
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--out", default="outputs/render/video")
+    p.add_argument("--frames", type=at_least(2), default=60)
+    p.add_argument("--out", type=out_folder, default="outputs/render/video")
 
 
 def run(args: argparse.Namespace) -> int:

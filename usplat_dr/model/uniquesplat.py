@@ -22,6 +22,7 @@ from usplat_dr.model.decoder import DecoderSplatting
 from usplat_dr.model.encoder.primary import (
     PrimaryNetwork,
     PrimaryNetworkCfg,
+    check_bounds,
     check_finite,
     config_from_dict,
 )
@@ -86,6 +87,9 @@ class UniqueSplatCfg:
     phi_channels: tuple[int, ...] = (128, 256, 256, 256)
 
     def __post_init__(self):
+        check_bounds(self, {"embed_dim": 8192, "hyper_hidden": 4096, "delta_rank": 4096,
+                            "resnet_stages": 4, "feature_dim": 2048, "proj_samples": 2048,
+                            "proj_stride": 256, "phi_channels": 4096})
         if self.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
         bad = [t for t in self.target_layers if t not in INJECTABLE]

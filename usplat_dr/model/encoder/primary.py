@@ -1,6 +1,8 @@
 """The primary network: an MVSplat-equivalent encoder (``EncoderCostVolume``) that loads the
 official checkpoints strictly and computes the same Gaussians."""
 
+import types
+import typing
 from dataclasses import dataclass, fields, replace
 from math import lcm
 
@@ -31,8 +33,63 @@ def config_from_dict(cls, d: dict):
     unknown = sorted(set(d) - known)
     if unknown:
         raise ValueError(f"unknown {cls.__name__} keys {unknown}; known: {sorted(known)}")
-    tuples = {k: tuple(v) for k, v in d.items() if isinstance(v, list)}
-    return replace(cls(), **{**d, **tuples})
+    d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+    hints = typing.get_type_hints(cls)
+    for name, value in d.items():
+        if not _fits(hints[name], value):
+            raise ValueError(f"{cls.__name__}.{name} must be of type {_type_name(hints[name])}, got "
+                             f"{value!r:.80}")
+    return replace(cls(), **d)
+
+
+def _fits(hint, value) -> bool:
+    """Whether a plain value fits a config field's annotation (int, float, str, bool, a nested
+    config, ``X | None``, ``tuple[X, ...]``, ``tuple[X, Y, Z]``)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(a, value) for a in args)
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_fits(args[0], v) for v in value)
+        return len(args) == len(value) and all(_fits(a, v) for a, v in zip(args, value))
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def _type_name(hint) -> str:
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+#: Longest list a config's list fields may hold (U-Net levels, attention resolutions, the
+#: hypernetwork's channels): the presets use <= 5.
+MAX_LIST = 8
+
+
+def check_bounds(cfg, bounds: dict[str, int]) -> None:
+    """``ValueError`` unless every field named in ``bounds`` is an int (or a tuple of at most
+    ``MAX_LIST`` ints) in 0..bound. The bounds are ~16x the paper's sizes: a config from a
+    checkpoint or a YAML file is refused before a module is built, instead of building 10^6
+    layers."""
+    for name, hi in bounds.items():
+        value = getattr(cfg, name)
+        items = value if isinstance(value, tuple) else (value,)
+        if isinstance(value, tuple) and len(value) > MAX_LIST:
+            raise ValueError(f"{name} has {len(value)} entries, more than {MAX_LIST}")
+        for v in items:
+            if v is None and not isinstance(value, tuple):
+                continue
+            if isinstance(v, bool) or not isinstance(v, int):
+                # a config error, like every other (the CLI reports ValueErrors in one line)
+                raise ValueError(f"{name} must hold integers, got {value!r}")  # noqa: TRY004
+            if not 0 <= v <= hi:
+                raise ValueError(f"{name} must be in 0..{hi}, got {v}")
 
 
 @dataclass(frozen=True)
@@ -77,6 +134,12 @@ class PrimaryNetworkCfg:
     cost_volume_chunk: int = 16
 
     def __post_init__(self):
+        check_bounds(self, {"d_feature": 2048, "num_transformer_layers": 64, "ffn_expansion": 16,
+                            "multiview_trans_attn_split": 64, "num_depth_candidates": 2048,
+                            "costvolume_unet_feat_dim": 2048, "costvolume_unet_channel_mult": 16,
+                            "costvolume_unet_attn_res": 4096, "depth_unet_feat_dim": 2048,
+                            "depth_unet_channel_mult": 16, "depth_unet_attn_res": 4096,
+                            "gaussians_per_pixel": 16, "cost_volume_chunk": 2048})
         for name in ("d_feature", "num_transformer_layers", "num_depth_candidates",
                      "costvolume_unet_feat_dim", "depth_unet_feat_dim", "gaussians_per_pixel",
                      "multiview_trans_attn_split", "cost_volume_chunk"):

@@ -1,0 +1,465 @@
+"""The attack suite: inputs written to make the project write outside its folder, hand data
+to an interpreter, take unbounded memory or time, or stop a run that should skip a record.
+It grows from the fuzz suite (``tests/test_fuzz.py``: its guards and fakes) and counts its
+outcomes per class; the last test prints them (``pytest tests/test_attacks.py -q -s``) and
+README's "Reliability" section records them. Process faults (SIGKILL, two runs on one
+folder, a full disk) are in ``tests/training/test_run_safety.py``.
+
+Each input must end in a documented way: an error naming the file or value (``ValueError``
+and its subclasses), or the record skipped with a warning and the pass going on. A crash
+(any other exception), a hang (no result in ``HANG_S``), a file written outside the output
+folder, or a special file replaced fails the test and is counted."""
+
+import collections
+import io
+import json
+import os
+import subprocess
+import zipfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from tests.data.fakes import write_plain_dataset
+from tests.test_fuzz import deadline, iterate, png_claiming, scene, warnings_of
+from usplat_dr.config import ConfigError, load_config, parse
+from usplat_dr.data.chunks import BadChunkError, decode_image, read_chunk, read_index
+from usplat_dr.data.view_sampler import read_evaluation_index
+from usplat_dr.io import torch_save, write_json
+from usplat_dr.io.images import save_png
+from usplat_dr.io.names import safe_stem
+from usplat_dr.model.uniquesplat import UniqueSplatCfg
+
+# Every input here ends in well under a second on an idle machine (the evaluation of 6
+# scenes with the tiny model takes ~3 s, and has 6x longer); 20 s means it did not end.
+HANG_S = 20
+COUNTS = collections.Counter()  # (class, outcome) -> inputs; printed by test_zz_the_counts
+PATHS, DECODING, BOUNDS, SKIPS = ("writes outside the folder", "data reaching an interpreter",
+                                  "unbounded memory or time", "one bad record stops a run")
+
+
+def hostile_keys(rng: np.random.Generator, count: int) -> list[str]:
+    """Scene keys that name other folders, are too long for a file name, or hold bytes a
+    file name cannot: fixed classics, then random mixtures of the dangerous parts."""
+    fixed = ["../../../../../escaped", "/tmp/absolute", "..", ".", "", "a/../../b", "~root",
+             "x" * 300, "nul\x00byte", "new\nline", "back\\slash", ".hidden", "-rf", "é" * 200,
+             "\u202ereversed", "con", "a" * 96, "a" * 97, "..\\..\\win", "/", "//", "a:b*c?"]
+    parts = ["..", "/", "\\", "\x00", "\n", ".", "é", "€", " ", "x", "0", "-", "_", "~",
+             "\x7f", "\U0001f600", "a" * 50]
+    keys = list(fixed)
+    while len(keys) < count:
+        n = int(rng.integers(1, 12))
+        keys.append("".join(parts[int(i)] for i in rng.integers(0, len(parts), n)))
+    return keys
+
+
+def files_under(root: Path) -> set[Path]:
+    return {p for p in root.rglob("*")}
+
+
+# ---- 1. paths ------------------------------------------------------------------------------
+
+def test_every_hostile_key_names_a_file_inside_its_folder(tmp_path):
+    keys = hostile_keys(np.random.default_rng(0), 300)
+    stems = {}
+    for key in keys:
+        stem = safe_stem(key)
+        target = (tmp_path / f"fit_{stem}.png")
+        # inside the folder, a file name of <= 255 bytes, no NUL: the writer can open it
+        assert target.resolve().parent == tmp_path.resolve(), (key, stem)
+        assert len(target.name.encode()) <= 255 and "\x00" not in stem and stem not in (
+            "", ".", ".."), (key, stem)
+        assert stems.setdefault(stem, key) == key, f"{key!r} and {stems[stem]!r} share {stem}"
+        COUNTS[(PATHS, "inside")] += 1
+    # the field's keys are kept as they are (RealEstate10K: 16 hex digits)
+    assert safe_stem("5aca87f95a9412c6") == "5aca87f95a9412c6"
+
+
+def test_evaluation_writes_hostile_keys_inside_its_folder(tmp_path):
+    from usplat_dr.evaluation import evaluate
+    from usplat_dr.model import UniqueSplat
+
+    keys = ["../../../../escaped", str(tmp_path / "absolute"), "k" * 300, "nul\x00byte",
+            "a/b", "plain"]
+    data, out = tmp_path / "data", tmp_path / "run" / "eval"
+    write_plain_dataset(data, "test", [[scene(k) for k in keys]])
+    index = tmp_path / "index.json"
+    index.write_text(json.dumps({k: {"context": [0, 4], "target": [2]} for k in keys}))
+    before = files_under(tmp_path)
+    torch.manual_seed(0)
+    model = UniqueSplat.from_preset("tiny", variant="baseline")
+    with deadline(6 * HANG_S):  # a model's forward passes: slower on a loaded 2-core machine
+        summary = evaluate(model, {"name": "re10k", "roots": [str(data)], "image_shape": [32, 32],
+                                   "overrides": {"original_image_shape": [32, 48]}},
+                           {"standard": str(index)}, out, progress=False, images_per_split=10)
+    assert summary["splits"]["standard"]["scenes"] == len(keys)
+    new = files_under(tmp_path) - before
+    outside = [p for p in new if not p.is_relative_to(out) and p not in out.parents]
+    assert not outside, outside
+    renders = sorted((out / "renders" / "standard").iterdir())
+    assert len(renders) == len(keys)
+    # the key itself is kept inside each file
+    found = {json.loads(Image.open(p).text["scene"]) for p in renders}
+    assert found == set(keys)
+    COUNTS[(PATHS, "inside")] += len(keys)
+
+
+def special_files(tmp_path: Path) -> list[tuple[str, Path]]:
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    (tmp_path / "folder").mkdir()
+    return [("character device", Path("/dev/null")), ("FIFO", fifo),
+            ("folder", tmp_path / "folder")]
+
+
+@pytest.mark.parametrize("writer", ["json", "png", "torch"])
+def test_special_files_are_never_renamed_over(writer, tmp_path):
+    write = {"json": lambda p: write_json(p, {"a": 1}),
+             "png": lambda p: save_png(p, np.zeros((4, 4, 3))),
+             "torch": lambda p: torch_save({"a": torch.zeros(1)}, p)}[writer]
+    for kind, path in special_files(tmp_path):
+        mode = os.stat(path).st_mode
+        with deadline(HANG_S), pytest.raises(ValueError, match="not a regular file"):
+            write(path)
+        assert os.stat(path).st_mode == mode, f"{kind} {path} was replaced"
+        COUNTS[(PATHS, "refused")] += 1
+    assert not list(tmp_path.glob(".*.tmp"))  # no temporary file left behind
+
+
+def test_chunks_that_link_outside_the_root_or_are_not_files_are_skipped(tmp_path, caplog):
+    root = tmp_path / "data"
+    stage = write_plain_dataset(root, "test", [[scene("s0")]])
+    outside = tmp_path / "elsewhere.torch"
+    torch.save([scene("s1")], outside)
+    (stage / "000001.torch").symlink_to(outside)
+    os.mkfifo(stage / "000002.torch")
+    (stage / "index.json").write_text(json.dumps(
+        {"s0": "000000.torch", "s1": "000001.torch", "s2": "000002.torch"}))
+    examples = iterate(root, caplog)
+    assert [e["scene"] for e in examples] == ["s0"]
+    warnings = " ".join(warnings_of(caplog))
+    assert "outside the dataset root" in warnings and "not a regular file" in warnings
+    COUNTS[(PATHS, "skipped with a warning")] += 2
+
+
+# ---- 2. decoding ---------------------------------------------------------------------------
+
+def encoded(fmt: str, **kwargs) -> torch.Tensor:
+    buf = io.BytesIO()
+    Image.fromarray(np.full((8, 8, 3), 200, np.uint8)).save(buf, format=fmt, **kwargs)
+    return torch.frombuffer(bytearray(buf.getvalue()), dtype=torch.uint8)
+
+
+def raw(data: bytes) -> torch.Tensor:
+    return torch.frombuffer(bytearray(data), dtype=torch.uint8)
+
+
+def other_formats() -> list[tuple[str, torch.Tensor]]:
+    """Images Pillow could decode, none of them PNG or JPEG, and bytes meant for external
+    programs (Ghostscript for EPS/PS/PDF)."""
+    eps = (b"%!PS-Adobe-3.0 EPSF-3.0\n%%BoundingBox: 0 0 8 8\n"
+           b"(%pipe%touch /tmp/usplat_pwned) (w) file\nshowpage\n%%EOF\n")
+    cases = [(f, encoded(f)) for f in ("GIF", "BMP", "TIFF", "PPM", "ICO", "TGA", "PCX", "SGI",
+                                       "DDS", "QOI") if _can_write(f)]
+    cases += [("EPS", raw(eps)), ("PS", raw(b"%!PS\n" + eps[24:])),
+              ("PDF", raw(b"%PDF-1.4\n1 0 obj<<>>endobj\ntrailer<<>>\n%%EOF")),
+              ("XBM", raw(b"#define a_width 8\n#define a_height 8\nstatic char a_bits[] = "
+                          b"{0,0,0,0,0,0,0,0};\n")),
+              ("SVG", raw(b"<svg xmlns='http://www.w3.org/2000/svg'/>"))]
+    return cases
+
+
+def _can_write(fmt: str) -> bool:
+    try:
+        encoded(fmt)
+    except (KeyError, OSError, ValueError):
+        return False
+    return True
+
+
+def test_only_png_and_jpeg_are_decoded_and_no_program_runs(monkeypatch):
+    ran = []
+
+    def refuse(*args, **kwargs):
+        ran.append(args)
+        raise AssertionError(f"a program was started on data: {args}")
+
+    monkeypatch.setattr(subprocess, "Popen", refuse)
+    for fmt, data in other_formats():
+        with deadline(HANG_S), pytest.raises(ValueError, match="cannot be decoded"):
+            decode_image(data)
+        COUNTS[(DECODING, "refused")] += 1
+    assert not ran and not Path("/tmp/usplat_pwned").exists()
+    for fmt in ("PNG", "JPEG"):
+        assert decode_image(encoded(fmt)).shape == (3, 8, 8)
+
+
+def png_16bit(values: np.ndarray) -> bytes:
+    """A 16-bit PNG written from the specification (grey: colour type 0; RGB: 2), big-endian
+    samples, filter 0 on every row: Pillow cannot write 16-bit RGB."""
+    h, w = values.shape[:2]
+    colour = 2 if values.ndim == 3 else 0
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return (len(data).to_bytes(4, "big") + tag + data
+                + zlib.crc32(tag + data).to_bytes(4, "big"))
+
+    rows = b"".join(b"\x00" + values[y].astype(">u2").tobytes() for y in range(h))
+    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([16, colour, 0, 0, 0])
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(rows))
+            + chunk(b"IEND", b""))
+
+
+def test_16_bit_pngs_decode_to_the_right_values():
+    rng = np.random.default_rng(1)
+    for i in range(40):
+        shape = (int(rng.integers(1, 9)), int(rng.integers(1, 9))) + ((3,) if i % 2 else ())
+        values = rng.integers(0, 65536, shape).astype(np.uint16)
+        values.flat[0], values.flat[-1] = 0, 65535
+        got = decode_image(raw(png_16bit(values))).permute(1, 2, 0).numpy().astype(int)
+        want = np.rint(values.astype(np.float64) * 255 / 65535).astype(int)
+        if values.ndim == 2:
+            want = np.repeat(want[..., None], 3, axis=-1)
+        # grey: scaled and rounded exactly; RGB: Pillow keeps each sample's high byte
+        # (v >> 8), within 1 of the rounded value
+        tol = 1 if values.ndim == 3 else 0
+        assert np.abs(got - want).max() <= tol, (values, got)
+        COUNTS[(DECODING, "16-bit decoded right")] += 1
+
+
+# ---- 3. bounds -----------------------------------------------------------------------------
+
+def yaml_bomb(levels: int, width: int) -> str:
+    lines = [f"a0: &a0 [{', '.join(['x'] * width)}]"]
+    for i in range(1, levels):
+        lines.append(f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * width)}]")
+    return "\n".join(lines) + "\n"
+
+
+def yaml_attacks() -> list[tuple[str, str]]:
+    # width^levels nodes: from 5x10^5 (5 x the bound) to 40^12
+    cases = [(f"aliases {lv}x{w}", yaml_bomb(lv, w))
+             for lv in (6, 9, 12) for w in (9, 10, 20, 40)] + [("aliases 4x18", yaml_bomb(4, 18))]
+    cases += [("recursive alias", "a: &a [*a]\n"),
+              ("recursive mapping", "a: &a {b: *a}\n"),
+              ("nested 100k lists", "a: " + "[" * 100_000 + "]" * 100_000 + "\n"),
+              ("nested 100k maps", "a: " + "{b: " * 50_000 + "1" + "}" * 50_000 + "\n"),
+              ("10 MB of text", "a: " + "x" * 10_000_000 + "\n")]
+    return cases
+
+
+def test_yaml_configs_are_bounded_before_expansion(tmp_path):
+    for i, (kind, text) in enumerate(yaml_attacks()):
+        path = tmp_path / f"bomb{i}.yaml"
+        path.write_text(text)
+        with deadline(HANG_S), pytest.raises(ConfigError) as e:
+            load_config([str(path)])
+        assert path.name in str(e.value), (kind, e.value)
+        COUNTS[(BOUNDS, "refused")] += 1
+        with deadline(HANG_S), pytest.raises(ConfigError):  # the same text as an override
+            load_config(["synthetic_tiny.yaml"], [f"train.x={text[3:]}"]
+                        if kind.startswith("nested") else [f"train.x={text}"])
+        COUNTS[(BOUNDS, "refused")] += 1
+    # what the shipped configs hold still parses: anchors used a few times
+    assert parse("a: &x {b: 1}\nc: *x\n") == {"a": {"b": 1}, "c": {"b": 1}}
+
+
+def model_config_attacks() -> list[tuple[str, dict]]:
+    cases = [("layers", {"primary": {"num_transformer_layers": 10 ** 6}}),
+             ("depth candidates", {"primary": {"num_depth_candidates": 10 ** 7}}),
+             ("features", {"primary": {"d_feature": 10 ** 6}}),
+             ("U-Net levels", {"primary": {"depth_unet_channel_mult": [1] * 100_000}}),
+             ("channel mult", {"primary": {"costvolume_unet_channel_mult": [1, 10 ** 6]}}),
+             ("phi channels", {"phi_channels": [64] * 100_000}),
+             ("phi width", {"phi_channels": [10 ** 7]}),
+             ("embedding", {"embed_dim": 10 ** 8}),
+             ("rank", {"delta_rank": 10 ** 6}),
+             ("samples", {"proj_samples": 10 ** 6}),
+             ("a string", {"embed_dim": "512"}),
+             ("a float", {"hyper_hidden": 1e9}),
+             ("negative", {"feature_dim": -5}),
+             ("gaussians per pixel", {"primary": {"gaussians_per_pixel": 10 ** 5}})]
+    return cases
+
+
+def test_model_configs_are_bounded_before_building(tmp_path):
+    from usplat_dr.training.checkpoints import load_model
+
+    good = UniqueSplatCfg.from_dict({}).to_dict()
+    for i, (kind, change) in enumerate(model_config_attacks()):
+        with deadline(HANG_S), pytest.raises(ValueError):
+            UniqueSplatCfg.from_dict({**change})
+        # the same inside a checkpoint: refused before a module is built
+        cfg = {**good, **change}
+        if "primary" in change:
+            cfg["primary"] = {**good["primary"], **change["primary"]}
+        path = torch_save({"model_config": cfg, "state_dict": {}, "step": 0},
+                          tmp_path / f"ckpt{i}.pt")
+        with deadline(HANG_S), pytest.raises(ValueError) as e:
+            load_model(path)
+        assert path.name in str(e.value), (kind, e.value)
+        COUNTS[(BOUNDS, "refused")] += 2
+
+
+def deflated(obj: object, path: Path) -> Path:
+    """``obj`` saved by torch.save, then re-packed with every record deflated: a file that
+    inflates ``ratio`` times."""
+    plain = io.BytesIO()
+    torch.save(obj, plain)
+    with zipfile.ZipFile(plain) as zi, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zo:
+        for info in zi.infolist():
+            zo.writestr(info.filename, zi.read(info.filename))
+    return path
+
+
+def test_compressed_archives_are_refused_before_inflating(tmp_path, caplog):
+    from usplat_dr.training.checkpoints import load_model
+
+    for i, mb in enumerate((1, 16, 64)):
+        big = torch.zeros(mb * 2 ** 18)  # mb MiB of zeros: deflates ~1000x
+        chunk = deflated([scene("s0", filler=big)], tmp_path / f"c{i}.torch")
+        assert chunk.stat().st_size < mb * 2 ** 20 / 50
+        with deadline(HANG_S), pytest.raises(BadChunkError, match="compressed records"):
+            read_chunk(chunk)
+        ckpt = deflated({"model_config": {}, "state_dict": {"w": big}}, tmp_path / f"m{i}.pt")
+        with deadline(HANG_S), pytest.raises(ValueError, match="compressed records"):
+            load_model(ckpt)
+        COUNTS[(BOUNDS, "refused")] += 2
+    root = tmp_path / "data"
+    stage = write_plain_dataset(root, "test", [[scene("s0")]])
+    deflated([scene("s0")], stage / "000000.torch")
+    assert iterate(root, caplog) == []
+    assert any("compressed records" in w for w in warnings_of(caplog))
+    COUNTS[(BOUNDS, "skipped with a warning")] += 1
+
+
+def test_deep_json_is_an_error_naming_the_file(tmp_path):
+    for depth in (1_000, 10_000, 100_000, 1_000_000):
+        for shape in ("[", '{"a":'):
+            text = shape * depth + "1" + ("]" if shape == "[" else "}") * depth
+            stage = tmp_path / f"d{depth}{len(shape)}"
+            stage.mkdir()
+            (stage / "index.json").write_text(text)
+            with deadline(HANG_S), pytest.raises(ValueError) as e:
+                read_index(stage)
+            assert "index.json" in str(e.value)
+            with deadline(HANG_S), pytest.raises(ValueError) as e:
+                read_evaluation_index(stage / "index.json")
+            assert "index.json" in str(e.value)
+            COUNTS[(BOUNDS, "refused")] += 2
+
+
+def test_images_are_bounded_after_resizing(tmp_path, caplog):
+    # frames thin enough to pass the pixel cap, which the resize to cover 16x16 would blow up
+    for i, (h, w) in enumerate([(1, 4_000_000), (4_000_000, 1), (2, 3_000_000)]):
+        img = np.zeros((h, w, 3), np.uint8)
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, format="PNG")
+        data = raw(buf.getvalue())
+        root = tmp_path / f"r{i}"
+        write_plain_dataset(root, "test", [[scene("s0", images=[data] * 6)]])
+        with deadline(HANG_S):
+            examples = list(_pass(root, caplog))
+        assert examples == [] and any("would be resized" in w for w in warnings_of(caplog))
+        COUNTS[(BOUNDS, "skipped with a warning")] += 1
+    # a header claiming a huge image is refused before decoding (the fuzz suite's case)
+    with pytest.raises(ValueError, match="claims|cannot be decoded"):
+        decode_image(png_claiming(100_000, 100_000))
+
+
+def _pass(root: Path, caplog):
+    from usplat_dr.data.dataset import dataset_from_section
+
+    index = root / "index_default.json"
+    index.write_text(json.dumps({"s0": {"context": [0, 4], "target": [2]}}))
+    caplog.clear()
+    # the shape check is off (as for DTU), so the odd frame reaches the resize
+    return dataset_from_section({"name": "re10k", "roots": [str(root)], "image_shape": [16, 16],
+                                 "overrides": {"skip_bad_shape": False},
+                                 "evaluation_index": str(index)}, "test")
+
+
+# ---- 4. records a run skips ----------------------------------------------------------------
+
+NEAR_FAR = [(1e-30, 1e30), (1e-30, 1.0), (1.0, 1e30), (1e-7, 10.0), (1.0, 2e6), (0.0, 1.0),
+            (-1.0, 1.0), (5.0, 5.0), (6.0, 5.0), (float("nan"), 1.0), (1.0, float("inf")),
+            (1e38, 3e38), (-1e30, -1e29)]
+
+
+def test_absurd_near_far_and_cameras_are_skipped(tmp_path, caplog):
+    good = scene("s0")
+    cams = good["cameras"]
+    cases = [("near_far", {"near_far": torch.tensor(nf, dtype=torch.float32)})
+             for nf in NEAR_FAR]
+    for rows, cols, value in [(slice(None), 0, 1e30), (0, 1, 1e20), (1, 2, -1e9),
+                              (slice(None), 15, 1e30), (2, 9, -1e12), (3, 17, 1e7)]:
+        c = cams.clone()
+        c[rows, cols] = value
+        cases.append(("camera", {"cameras": c}))
+    for i, (kind, change) in enumerate(cases):
+        root = tmp_path / f"s{i}"
+        write_plain_dataset(root, "test", [[scene("s0", **change)]])
+        examples = iterate(root, caplog, name="synth" if kind == "near_far" else "re10k")
+        assert examples == [], (kind, change)
+        assert any("s0" in w and "000000.torch" in w for w in warnings_of(caplog)), kind
+        COUNTS[(SKIPS, "skipped with a warning")] += 1
+
+
+def odd_tensors() -> list[tuple[str, dict]]:
+    good = scene("s0")
+    img0 = good["images"][0]
+    return [("sparse cameras", {"cameras": good["cameras"].to_sparse()}),
+            ("meta cameras", {"cameras": torch.empty(6, 18, device="meta")}),
+            ("sparse timestamps", {"timestamps": good["timestamps"].to_sparse()}),
+            ("meta timestamps", {"timestamps": torch.empty(6, dtype=torch.int64,
+                                                           device="meta")}),
+            ("sparse image", {"images": [img0.to_sparse()] + good["images"][1:]}),
+            ("meta image", {"images": [torch.empty(10, dtype=torch.uint8, device="meta")] * 6}),
+            ("sparse depths", {"depths": torch.ones(6, 32, 48).to_sparse()}),
+            ("meta depths", {"depths": torch.empty(6, 32, 48, device="meta")}),
+            ("quantised cameras", {"cameras": torch.quantize_per_tensor(
+                good["cameras"], 0.1, 0, torch.qint8)}),
+            ("sparse near_far", {"near_far": torch.tensor([1.0, 100.0]).to_sparse()})]
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")  # quantised tensors are deprecated
+def test_sparse_meta_and_quantised_tensors_are_skipped(tmp_path, caplog):
+    for i, (kind, change) in enumerate(odd_tensors()):
+        root = tmp_path / f"t{i}"
+        write_plain_dataset(root, "test", [[scene("s0", **change)]])
+        examples = iterate(root, caplog)
+        assert examples == [], kind
+        assert any("s0" in w for w in warnings_of(caplog)), (kind, warnings_of(caplog))
+        COUNTS[(SKIPS, "skipped with a warning")] += 1
+
+
+def test_duplicate_keys_are_read_once(tmp_path, caplog):
+    cases = {"two chunks": [[scene("s0")], [scene("s0")]],
+             "one chunk": [[scene("s0"), scene("s0")]],
+             "three copies": [[scene("s0")], [scene("s0"), scene("s0")]]}
+    for i, (kind, chunks) in enumerate(cases.items()):
+        root = tmp_path / f"d{i}"
+        write_plain_dataset(root, "test", chunks)
+        examples = iterate(root, caplog)
+        assert [e["scene"] for e in examples] == ["s0"], kind
+        assert any("duplicate key" in w for w in warnings_of(caplog)), kind
+        COUNTS[(SKIPS, "read once, copies skipped")] += 1
+    # two roots holding the same scene: read once
+    examples = iterate(tmp_path / "d0", caplog)
+    assert len(examples) == 1
+
+
+def test_zz_the_counts(capsys):
+    """Prints the outcomes per class (run with ``-s`` to see them)."""
+    assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)
+    by_class = collections.defaultdict(dict)
+    for (cls, outcome), n in sorted(COUNTS.items()):
+        by_class[cls][outcome] = n
+    with capsys.disabled():
+        print(f"\nattack suite: {sum(COUNTS.values())} inputs")
+        for cls, outcomes in by_class.items():
+            print(f"  {cls}: " + ", ".join(f"{n} {o}" for o, n in outcomes.items()))
