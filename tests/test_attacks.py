@@ -64,7 +64,7 @@ def files_under(root: Path) -> set[Path]:
 # ---- 1. paths ------------------------------------------------------------------------------
 
 def test_every_hostile_key_names_a_file_inside_its_folder(tmp_path):
-    keys = hostile_keys(np.random.default_rng(0), 300)
+    keys = hostile_keys(np.random.default_rng(0), 400)
     stems = {}
     for key in keys:
         stem = safe_stem(key)

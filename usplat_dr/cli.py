@@ -6,6 +6,7 @@ seconds), so ``usplat doctor`` and ``usplat --help`` start at once.
 """
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
@@ -39,10 +40,20 @@ COMMANDS = {
 
 
 #: User mistakes (a missing file, a bad config key or value, a checkpoint that does not fit,
-#: invalid input data): one line and exit status 2 instead of a traceback (``--debug`` shows
-#: it). The library raises these with messages that name the argument and the fix.
+#: invalid input data; also a full disk, any ``OSError`` with ``errno.ENOSPC``): one line and
+#: exit status 2 instead of a traceback (``--debug`` shows it). The library raises these with
+#: messages that name the argument and the fix.
 USER_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
                ValueError)
+
+
+#: A full disk, a full quota, a file-size limit: the same mistake to fix (free space).
+FULL_DISK = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def is_user_error(e: BaseException) -> bool:
+    """Whether ``e`` is a user mistake (``USER_ERRORS``) or a full disk."""
+    return isinstance(e, USER_ERRORS) or (isinstance(e, OSError) and e.errno in FULL_DISK)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,8 +77,8 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(message)s")
     try:
         return args.run(args)
-    except USER_ERRORS as e:
-        if args.debug:
+    except (*USER_ERRORS, OSError) as e:
+        if args.debug or not is_user_error(e):
             raise
         print(f"usplat {args.command}: error: {e or type(e).__name__} (--debug shows "
               f"the traceback)", file=sys.stderr)

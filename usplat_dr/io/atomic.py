@@ -71,5 +71,30 @@ def torch_save(obj: Any, path: str | os.PathLike) -> Path:
     import torch  # only here: the JSON and text writers do not load it (start-up time)
 
     with atomic_open(path, "wb") as f:
-        torch.save(obj, f)
+        sink = _WriteErrors(f)
+        try:
+            torch.save(obj, sink)
+        except RuntimeError:
+            # torch's zip writer reports a failed write (a full disk) as a RuntimeError about
+            # the stream position; the OSError itself says what to fix
+            if sink.error is not None:
+                raise sink.error from None
+            raise
     return Path(path)
+
+
+class _WriteErrors:
+    """A binary file that keeps the ``OSError`` of a failed write (``error``)."""
+
+    def __init__(self, f: IO[bytes]):
+        self.f, self.error = f, None
+
+    def write(self, data) -> int:
+        try:
+            return self.f.write(data)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self) -> None:
+        self.f.flush()

@@ -54,7 +54,11 @@ def _model_state(path: Path, state: dict) -> tuple[UniqueSplatCfg, dict[str, tor
     """The model config and weights of a loaded usplat checkpoint, checked against each other
     without building the network: a ``ValueError`` naming ``path`` unless ``model_config``
     describes a UniqueSplat whose parameters and buffers have exactly the shapes of
-    ``model``'s tensors, floating where the network's are, and finite."""
+    ``model``'s tensors, floating where the network's are, and finite.
+
+    The config's ``resnet_weights`` is cleared: a path stored in a checkpoint is never opened
+    (it named a file of the machine that trained, and a crafted one could name any file or a
+    FIFO); the ResNet18's weights are in ``model``."""
     if not isinstance(state.get("model_config"), dict):
         raise ValueError(f"{path} is not a usplat training checkpoint (no 'model_config'); "
                          f"an MVSplat checkpoint loads with UniqueSplat.load_mvsplat")
@@ -64,12 +68,12 @@ def _model_state(path: Path, state: dict) -> tuple[UniqueSplatCfg, dict[str, tor
         raise ValueError(f"{path}: 'model' is not a state dict (names -> tensors)")
     try:
         cfg = UniqueSplatCfg.from_dict(state["model_config"])
+        cfg = dataclasses.replace(cfg, resnet_weights=None)
         # Built on the meta device (shapes, no memory) first: a corrupt model_config can ask
         # for any size (d_feature=10**6 makes 8e13 weights), so the real network is built
         # only once its shapes are those of the checkpoint's tensors, already in memory.
-        # resnet_weights is a file of the training machine; the checkpoint holds its weights.
         with torch.device("meta"), _quiet_resnet():
-            expected = UniqueSplat(dataclasses.replace(cfg, resnet_weights=None)).state_dict()
+            expected = UniqueSplat(cfg).state_dict()
     except (TypeError, ValueError, KeyError, RuntimeError) as e:  # RuntimeError: sizes overflow
         raise ValueError(f"{path}: its model_config does not describe a UniqueSplat "
                          f"({type(e).__name__}: {str(e)[:300]})") from None

@@ -12,10 +12,12 @@ keys depend on the view sampler), checked the same way by
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 
 from usplat_dr.config import ConfigError, load_typed, where_set
 from usplat_dr.data.dataset import check_dataset_section
+from usplat_dr.data.view_sampler import ViewSamplerBoundedCfg
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.uniquesplat import PRESETS, UniqueSplatCfg
 from usplat_dr.training.checkpoints import init_from_checkpoint
@@ -99,10 +101,49 @@ RANGES = {
     "loss.lpips": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     "loss.depth": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     "loss.target_depth": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
-    "threads": (lambda v: v is None or v >= 1, "must be >= 1 (or null: cores / ranks)"),
+    # more threads than CPUs only time-slice them (and torch/OpenMP would start them all)
+    "threads": (lambda v: v is None or 1 <= v <= (os.cpu_count() or 1),
+                (f"must be >= 1 and at most this machine's CPUs (os.cpu_count() = "
+                 f"{os.cpu_count()}); or null: cores / ranks")),
     "data_loader.batch_size": (lambda v: v >= 1, "must be >= 1"),
     "data_loader.num_workers": (lambda v: v >= 0, "must be >= 0"),
 }
+
+
+#: The bounded view sampler's ranges (``dataset.view_sampler.*``): field -> (test, what the
+#: message says, formatted with the sampler's config as ``c``). Negative views or gaps fail
+#: inside the data loader's workers (torch.randint), zero target views make an empty loss
+#: (NaN), a minimum above its maximum no example at all.
+SAMPLER_RANGES = {
+    "num_context_views": (lambda c: c.num_context_views == 2,
+                          "must be 2 (the bounded sampler picks two context views)"),
+    "num_target_views": (lambda c: c.num_target_views >= 1, "must be >= 1"),
+    "min_distance_between_context_views": (
+        lambda c: 0 <= c.min_distance_between_context_views
+        <= c.max_distance_between_context_views,
+        ("must be >= 0 and <= max_distance_between_context_views "
+         "({c.max_distance_between_context_views})")),
+    "initial_min_distance_between_context_views": (
+        lambda c: 0 <= c.initial_min_distance_between_context_views
+        <= c.initial_max_distance_between_context_views,
+        ("must be >= 0 and <= initial_max_distance_between_context_views "
+         "({c.initial_max_distance_between_context_views})")),
+    "min_distance_to_context_views": (lambda c: c.min_distance_to_context_views >= 0,
+                                      "must be >= 0"),
+    "warm_up_steps": (lambda c: c.warm_up_steps >= 0, "must be >= 0 (0: no warm-up)"),
+}
+
+
+def check_sampler_ranges(sampler: object, origins: dict) -> None:
+    """A ``ConfigError`` naming the first ``SAMPLER_RANGES`` value of a bounded sampler's
+    config that is out of range and where it was set; other samplers pass."""
+    if not isinstance(sampler, ViewSamplerBoundedCfg):
+        return
+    for name, (ok, requirement) in SAMPLER_RANGES.items():
+        if not ok(sampler):
+            key = f"dataset.view_sampler.{name}"
+            raise ConfigError(f"{key}={getattr(sampler, name)!r} is out of range (set in "
+                              f"{where_set(origins, key)}): {requirement.format(c=sampler)}")
 
 
 @dataclass(frozen=True)
@@ -137,7 +178,8 @@ class RootCfg:
             if not ok(value):
                 raise ConfigError(f"{key}={value!r} is out of range (set in "
                                   f"{where_set(origins, key)}): {requirement}")
-        check_dataset_section(root.dataset, "train", origins)
+        sampler, _ = check_dataset_section(root.dataset, "train", origins)
+        check_sampler_ranges(sampler, origins)
         return root
 
 

@@ -4,9 +4,16 @@
 
 Nothing is lost: checkpoints are written atomically every ``train.checkpoint_every`` steps and
 on SIGINT/SIGTERM; ``resume`` continues exactly (model, optimiser, scheduler, step, RNG states,
-data position: each rank's own, under torchrun). A step with a non-finite loss or gradient is
-skipped with a warning and counted; ``train.max_nonfinite`` of them in a row stop the run with a
-message and a checkpoint of the last good state.
+data position: each rank's own, under torchrun). A step with a non-finite loss or gradient, or
+whose forward pass meets non-finite values (the rasteriser's "must be finite"), is skipped with
+a warning and counted; ``train.max_nonfinite`` of them in a row stop the run with a message and a
+checkpoint of the last good state. Parameters that became non-finite are never saved: the run
+stops at once, naming the last checkpoint (``TrainingStopped``).
+
+A run holds its ``output_dir`` (``run_folder_lock``): a second run there stops at start-up,
+naming the first's pid; on taking it, the temporary files of writes a killed run left are
+removed. ``metrics.csv`` is rewritten atomically on start (a kill never loses its rows), and a
+full disk is a ``DiskFull`` naming the file.
 
 Under torchrun every rank reads its own shard of the data (``usplat_dr.data.dataset``), takes
 ``data_loader.batch_size`` examples a step (the global batch is ranks x batch_size) and steps
@@ -15,15 +22,20 @@ with the ranks. All ranks stop after the same step on a signal; a rank that fail
 run with one message naming it (``usplat_dr.training.distributed.rank_failure``).
 """
 
+import contextlib
 import csv
 import dataclasses
+import errno
+import fcntl
 import logging
 import math
 import os
 import random
+import re
 import signal
 import time
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +53,7 @@ from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.evaluation.protocol import depth_scored_pixels
 from usplat_dr.evaluation.provenance import provenance
 from usplat_dr.geometry.cameras import pixel_centres
-from usplat_dr.io import torch_save
+from usplat_dr.io import UntrustedCheckpointError, atomic_open, torch_save
 from usplat_dr.training import cores as _cores
 from usplat_dr.training.checkpoints import read_usplat_checkpoint
 from usplat_dr.training.config import RootCfg, model_from_config
@@ -59,6 +71,162 @@ log = logging.getLogger(__name__)
 class TrainingStopped(RuntimeError):
     """Training stopped on purpose (non-finite steps); the message says why and where the last
     good checkpoint is."""
+
+
+#: The errors of a write that found no room: a full disk, a full quota, a file-size limit
+#: (``ulimit -f``, with SIGXFSZ ignored as batch schedulers do).
+FULL_DISK = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+class DiskFull(OSError):
+    """A write of the run failed for a full disk (``errno.ENOSPC``); the message names the file
+    and the fix (the atomic writers leave the file's previous version intact)."""
+
+    def __init__(self, path: str | os.PathLike):
+        super().__init__(errno.ENOSPC, f"disk full (or a quota or file-size limit): cannot write "
+                         f"{path} (its previous version "
+                         f"is intact): free space on that disk or choose another output_dir, "
+                         f"then rerun with --resume", str(path))
+
+    def __str__(self) -> str:
+        return self.strerror
+
+
+@contextlib.contextmanager
+def disk_full_names(path: str | os.PathLike) -> Iterator[None]:
+    """Turn an ``OSError(ENOSPC)`` inside the block into a ``DiskFull`` naming ``path``."""
+    try:
+        yield
+    except DiskFull:
+        raise
+    except OSError as e:
+        if e.errno not in FULL_DISK:
+            raise
+        raise DiskFull(path) from e
+
+
+#: Messages of ``ValueError``s that mean non-finite values met in a step (the rasteriser's
+#: "means must be finite, got NaN or Inf values"): the step is skipped like a NaN loss.
+NON_FINITE = re.compile(r"\bfinite\b|\bNaN\b")
+
+
+# ---- the run folder ----------------------------------------------------------------------------
+
+#: The lock file of a run folder, held with ``fcntl.flock`` while a run trains there. The
+#: kernel releases a flock when its process ends, however it ends: a SIGKILLed run leaves no
+#: stale lock. The file holds the pid of its holder (for the message of a refused run).
+LOCK_NAME = ".usplat-train.lock"
+#: The temporary files of ``usplat_dr.io.atomic.atomic_open``: ``tempfile.mkstemp``'s
+#: ``.<name>.<8 random characters>.tmp`` beside the target, left behind by a killed write.
+ATOMIC_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+_held: dict[Path, list] = {}  # folder -> [lock's file descriptor, depth]: re-entrant
+
+
+def _take_lock(folder: Path) -> int:
+    """Create ``folder`` and take its lock (a file descriptor); a ``ConfigError`` naming the
+    folder when it is a file, or another process holds the lock (naming its pid)."""
+    if folder.exists() and not folder.is_dir():
+        raise ConfigError(f"output_dir={folder} is an existing file, not a folder: choose "
+                          f"another output_dir=... (or move the file away)")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise ConfigError(f"output_dir={folder}: a part of this path is a file, not a folder: "
+                          f"choose another output_dir=...") from None
+    fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        pid = os.read(fd, 32).decode(errors="replace").strip()
+        os.close(fd)
+        who = f"pid {pid}" if pid.isdigit() else "pid unknown"
+        raise ConfigError(f"output_dir={folder} is in use by another usplat train ({who}): "
+                          f"wait for it to end or stop it, or choose another "
+                          f"output_dir=...") from None
+    try:  # the pid only informs a refused run's message: a failed write changes nothing
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+    except OSError:
+        pass
+    return fd
+
+
+def remove_temporary_files(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files of killed atomic writes (``ATOMIC_TEMPORARY``) under
+    ``folder``, recursively (symbolic links to folders are not followed); returns them. Call
+    it only while holding the folder's lock: a running run's write in flight looks the same."""
+    removed = []
+    for parent, _, names in os.walk(folder):
+        for name in names:
+            if ATOMIC_TEMPORARY.fullmatch(name):
+                path = Path(parent) / name
+                path.unlink(missing_ok=True)
+                removed.append(path)
+    if removed:
+        log.info("removed %d temporary file(s) of writes a killed run left in %s: %s",
+                 len(removed), folder, ", ".join(str(p) for p in removed[:3]))
+    return removed
+
+
+@contextlib.contextmanager
+def run_folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
+    """Hold the run folder ``folder`` (created if needed) for the block: another process
+    asking for it meanwhile gets a ``ConfigError`` naming the folder and this process's pid.
+    Re-entrant within a process. Taking it removes the temporary files killed writes left
+    (``remove_temporary_files``). Also a ``ConfigError`` when ``folder`` is a file."""
+    folder, key = Path(folder), Path(folder).resolve()
+    first = key not in _held
+    if first:
+        _held[key] = [_take_lock(folder), 0]
+    entry = _held[key]
+    entry[1] += 1
+    try:
+        if first:
+            remove_temporary_files(folder)
+        yield folder
+    finally:
+        entry[1] -= 1
+        if entry[1] == 0:
+            del _held[key]
+            os.close(entry[0])
+
+
+class MetricsLog:
+    """``metrics.csv``, a row per logged step. Opened for a run at ``step``, it keeps the rows
+    of the steps up to ``step`` (a resumed run redoes the later ones) by an atomic rewrite, so a
+    kill at any moment leaves every kept row in the file; new rows are appended and flushed one
+    at a time. A full disk is a ``DiskFull`` naming the file."""
+
+    def __init__(self, path: Path, fields: list[str], step: int):
+        self.path = path
+        rows = self.kept_rows(path, step)
+        with disk_full_names(path):
+            with atomic_open(path, "w") as f:
+                writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+                writer.writeheader()
+                writer.writerows(rows)
+            self.file = open(path, "a", newline="")  # noqa: SIM115 (closed by close())
+        self.writer = csv.DictWriter(self.file, fieldnames=fields, extrasaction="ignore")
+
+    @staticmethod
+    def kept_rows(path: Path, step: int) -> list[dict]:
+        """The complete rows of ``path`` (none when it does not exist) at steps <= ``step``; a
+        row cut short (a power cut mid-append) is dropped."""
+        if not path.exists():
+            return []
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        return [r for r in rows if None not in r and None not in r.values()
+                and (r.get("step") or "").isdigit() and int(r["step"]) <= step]
+
+    def write(self, row: dict) -> None:
+        with disk_full_names(self.path):
+            self.writer.writerow(row)
+            self.file.flush()
+
+    def close(self) -> None:
+        with disk_full_names(self.path):
+            self.file.close()
 
 
 def adam(params, lr: float) -> torch.optim.Adam:
@@ -108,12 +276,20 @@ class Batches:
         return {"epoch": self.epoch, "taken": self.taken}
 
     def restore(self, state: dict) -> None:
-        """Go back to ``state()``'s position (the same batches follow)."""
+        """Go back to ``state()``'s position (the same batches follow). A ``ConfigError``
+        when the epoch now has fewer batches than the position (the data changed)."""
         self.epoch, self.taken = state["epoch"], 0
         self.dataset.set_epoch(self.epoch)
         self._it = iter(self.loader)
         for _ in range(state["taken"]):  # replay (decodes the skipped batches once)
-            next(self._it)
+            try:
+                next(self._it)
+            except StopIteration:
+                raise ConfigError(
+                    f"its data position is batch {state['taken']} of epoch {self.epoch}, but "
+                    f"the training set now gives {self.taken} batch(es) an epoch (the data "
+                    f"under dataset.roots changed): put the data back, or start a new run in "
+                    f"another output_dir") from None
             self.taken += 1
 
     def next(self) -> dict:
@@ -174,6 +350,28 @@ def target_depth_loss(depth: torch.Tensor, alpha: torch.Tensor,
     return (pred.log() - true_z[valid].log()).abs().mean()
 
 
+def differing_fields(saved: dict, current: dict, prefix: str = "") -> list[tuple]:
+    """``(dotted name, saved value, current value)`` of the fields that both model configs
+    have and set differently (lists and tuples alike). ``resnet_weights`` is not compared: a
+    file of the machine that trained, whose weights the checkpoint holds.
+
+    Examples:
+        >>> differing_fields({"a": 1, "p": {"b": (1, 2)}}, {"a": 1, "p": {"b": [1, 3]}})
+        [('p.b', (1, 2), [1, 3])]
+    """
+    out = []
+    for key in sorted(set(saved) & set(current), key=str):
+        was, now = saved[key], current[key]
+        if key == "resnet_weights":
+            continue
+        if isinstance(was, dict) and isinstance(now, dict):
+            out += differing_fields(was, now, f"{prefix}{key}.")
+        elif (list(was) if isinstance(was, tuple) else was) != (
+                list(now) if isinstance(now, tuple) else now):
+            out.append((f"{prefix}{key}", was, now))
+    return out
+
+
 # ---- the trainer -------------------------------------------------------------------------------
 
 class Trainer:
@@ -223,9 +421,11 @@ class Trainer:
                            if self.rank == 0 else {})
         self.step = 0
         self.skipped = 0
+        self.saved_step = None  # the step of this run's checkpoint
         self.consecutive_bad = 0
         self._stop_signal = None
         self._val_batch = None
+        self._metrics = self._board = self._bar = None  # rank 0's logs, while fit() runs
 
     # -- checkpoints --
     @property
@@ -236,9 +436,16 @@ class Trainer:
     def save(self) -> Path | None:
         """Write the checkpoint atomically (rank 0; other ranks return ``None``). Under
         torchrun every rank calls it at the same step: it gathers each rank's data position
-        and RNG states (``ranks``), so that each resumes exactly where it was."""
+        and RNG states (``ranks``), so that each resumes exactly where it was. Parameters
+        that are not finite are never saved: a ``TrainingStopped`` names the last checkpoint;
+        a full disk is a ``DiskFull`` naming the file."""
+        if not self.parameters_finite():
+            raise TrainingStopped(f"the parameters are non-finite (NaN or Inf) at step "
+                                  f"{self.step}; stopped without saving them. "
+                                  f"{self.last_good()}")
         ranks = gather({"data": self.batches.state(), "rng": rng_state()})
         if self.rank != 0:
+            self.saved_step = self.step
             return None
         state = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
                  "scheduler": self.scheduler.state_dict(), "step": self.step,
@@ -247,32 +454,116 @@ class Trainer:
                  "provenance": self.provenance}
         if self.world > 1:
             state["ranks"] = ranks
-        return torch_save(state, self.checkpoint_path)
+        with disk_full_names(self.checkpoint_path):
+            path = torch_save(state, self.checkpoint_path)
+        self.saved_step = self.step
+        return path
+
+    @torch.no_grad()
+    def parameters_finite(self) -> bool:
+        """Whether every parameter is finite (from each one's largest |value|: a 2-norm
+        would overflow to inf on large finite weights)."""
+        largest = torch._foreach_norm(list(self.model.parameters()), float("inf"))
+        return bool(torch.stack(largest).isfinite().all())
+
+    def last_good(self) -> str:
+        """Where the last good state of this run is, and what to do (for messages)."""
+        if self.saved_step is None:
+            return ("No checkpoint of this run holds a good state: lower optimizer.lr (or "
+                    "check the data) and start again")
+        return (f"The last good state is in {self.checkpoint_path} (step {self.saved_step}): "
+                f"lower optimizer.lr (or check the data), then resume with --resume")
 
     def resume(self, path: str | os.PathLike | None = None) -> bool:
         """Continue from ``path`` (default: this run's last checkpoint). False when there is
-        none to resume from."""
+        none to resume from. A checkpoint that is damaged, of another model, or whose data
+        position the training set no longer has is a ``ConfigError`` naming it and the fix."""
         path = Path(path) if path else self.checkpoint_path
         if not path.is_file():
             return False
+        state = self._resumable_state(path)
+        self._check_same_model(path, state)
+        try:
+            self.model.load_state_dict(state["model"])
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.scheduler.load_state_dict(state["scheduler"])
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as e:
+            detail = " ".join(str(e).split())[:300]  # one line (torch's lists span several)
+            raise ConfigError(f"--resume: {path} does not fit this run ({type(e).__name__}: "
+                              f"{detail}): resume with the settings it was trained with (its "
+                              f"'config'), or move it away to start again from step "
+                              f"0") from None
+        self.step, self.skipped = state["step"], state.get("skipped", 0)
+        self.saved_step = self.step
+        self.step_tracker.set_step(self.step)
+        self._restore_position(path, state)
+        log.info("resumed from %s at step %d", path, self.step)
+        return True
+
+    #: What a checkpoint needs to be resumed (a shipped weights file has only the model).
+    RESUME_KEYS = ("model", "optimizer", "scheduler", "step", "rng", "data")
+
+    def _resumable_state(self, path: Path) -> dict:
+        """The checkpoint ``path`` read, with what resuming needs; else a ``ConfigError``."""
         # tensors and plain data only: weights_only=True (model.trust_checkpoint for a file
         # written before the RNG states were plain data)
-        state = read_usplat_checkpoint(path, self.device, self.config.model.trust_checkpoint)
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.scheduler.load_state_dict(state["scheduler"])
-        self.step, self.skipped = state["step"], state["skipped"]
-        self.step_tracker.set_step(self.step)
+        try:
+            state = read_usplat_checkpoint(path, self.device,
+                                           self.config.model.trust_checkpoint)
+        except UntrustedCheckpointError:
+            raise  # its message names the opt-in
+        except ValueError as e:  # truncated, not a torch file, not a dict
+            raise ConfigError(f"--resume: {e}: move it away to start again from step "
+                              f"0") from None
+        bad = [k for k in self.RESUME_KEYS if k not in state]
+        step = state.get("step")
+        if not (isinstance(step, int) and not isinstance(step, bool) and step >= 0):
+            bad.append("step")
+        if bad:
+            raise ConfigError(f"--resume: {path} has no usable {sorted(set(bad))} (a damaged "
+                              f"checkpoint, or a shipped weights file: only usplat train's own "
+                              f"last.ckpt resumes): move it away to start again from step 0")
+        return state
+
+    def _check_same_model(self, path: Path, state: dict) -> None:
+        """A ``ConfigError`` when the checkpoint's model is not the one this run builds,
+        naming ``model.variant`` / ``model.preset`` when those changed, else the fields."""
+        saved = state.get("model_config")
+        differ = (differing_fields(saved, self.model.cfg.to_dict())
+                  if isinstance(saved, dict) else [])
+        if not differ:
+            return
+        config = state.get("config")
+        section = config.get("model") if isinstance(config, dict) else None
+        section = section if isinstance(section, dict) else {}
+        for key in ("variant", "preset"):
+            was, now = section.get(key), getattr(self.config.model, key)
+            if was is not None and was != now:
+                raise ConfigError(f"--resume: {path} was trained with model.{key}={was}, this "
+                                  f"run asks for model.{key}={now}: pass model.{key}={was} to "
+                                  f"resume it, or choose another output_dir for a new run")
+        name, was, now = differ[0]
+        raise ConfigError(f"--resume: {path} was trained with another model ({len(differ)} "
+                          f"field(s) of model_config differ; {name}: {was!r} there, {now!r} "
+                          f"now): set model.overrides as they were (the checkpoint's 'config' "
+                          f"holds them), or choose another output_dir for a new run")
+
+    def _restore_position(self, path: Path, state: dict) -> None:
+        """This rank's data position and random state from the checkpoint."""
         ranks = state.get("ranks") or [{"data": state["data"], "rng": state["rng"]}]
         if len(ranks) != self.world:
             log.warning("%s was written by %d rank(s), this run has %d: every rank resumes "
                         "rank 0's data position and random state, so the data order is not "
                         "an uninterrupted run's", path, len(ranks), self.world)
         mine = ranks[self.rank] if len(ranks) == self.world else ranks[0]
-        self.batches.restore(mine["data"])
+        try:
+            self.batches.restore(mine["data"])
+        except ConfigError as e:
+            raise ConfigError(f"--resume: {path}: {e}") from None
+        except (KeyError, TypeError) as e:
+            raise ConfigError(f"--resume: {path} holds a damaged data position ({e!r}): move "
+                              f"it away to start again from step 0") from None
         set_rng_state(mine["rng"])
-        log.info("resumed from %s at step %d", path, self.step)
-        return True
 
     # -- one step --
     def loss(self, out, batch: dict) -> tuple[torch.Tensor, dict]:
@@ -348,8 +639,9 @@ class Trainer:
 
     def train_step(self, batch: dict) -> dict | None:
         """One optimiser step on ``batch``: its statistics, or ``None`` when the loss or
-        gradient is not finite (no update, BatchNorm statistics restored; the learning-rate
-        schedule advances as for any step)."""
+        gradient is not finite, or the forward pass met non-finite values (a ``ValueError``
+        matching ``NON_FINITE``, e.g. the rasteriser's "means must be finite"): no update,
+        BatchNorm statistics restored; the learning-rate schedule advances as for any step."""
         self.ddp.train()
         args = model_inputs(batch, self.device)
         target = batch["target"]["image"].to(self.device)
@@ -357,9 +649,17 @@ class Trainer:
         # BatchNorm statistics change in the forward pass: kept to be put back if the step
         # is skipped (a NaN input would otherwise poison them for good)
         buffers = {n: b.detach().clone() for n, b in self.model.named_buffers()}
-        out = self.ddp(*args, global_step=self.step)
-        loss, parts = self.loss(out, batch)
-        loss.backward()
+        try:
+            out = self.ddp(*args, global_step=self.step)
+            loss, parts = self.loss(out, batch)
+            loss.backward()
+        except ValueError as e:
+            if not NON_FINITE.search(str(e)):
+                raise
+            if self.world > 1:  # the other ranks wait in this step's collectives: stop all
+                raise TrainingStopped(f"step {self.step}: {e}; stopped. "
+                                      f"{self.last_good()}") from None
+            return self._skip(buffers, f"non-finite values in the forward pass ({e})")
         norm, grad_norms = self.clip_gradients()
         parts.update(grad_norms)
         finite = torch.isfinite(loss) & torch.isfinite(norm)
@@ -368,24 +668,8 @@ class Trainer:
             dist.all_reduce(flag, op=dist.ReduceOp.MIN)
             finite = flag > 0
         if not bool(finite):
-            self.skipped += 1
-            self.consecutive_bad += 1
-            log.warning("step %d: non-finite loss or gradient (loss %s, grad norm %s); step "
-                        "skipped (%d so far)", self.step, loss.item(), norm.item(), self.skipped)
-            self.optimizer.zero_grad(set_to_none=True)
-            with torch.no_grad():
-                for n, b in self.model.named_buffers():
-                    if n in buffers:
-                        b.copy_(buffers[n])
-            # A skipped step still counts (its batch is consumed, ``step`` advances), and the
-            # learning rate stays a function of ``step``: the schedule advances too, so a run
-            # with skips ends its schedule at ``train.steps`` like one without. (torch warns
-            # when the very first step is skipped, the optimizer not having stepped yet; the
-            # schedule's first value is then consumed by the skipped step, as intended.)
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler")
-                self.scheduler.step()
-            return None
+            return self._skip(buffers, f"non-finite loss or gradient (loss {loss.item()}, "
+                                       f"grad norm {norm.item()})")
         self.consecutive_bad = 0
         self.optimizer.step()
         self.scheduler.step()
@@ -395,107 +679,76 @@ class Trainer:
         return {"loss": loss.item(), "psnr": psnr, "grad_norm": norm.item(),
                 "lr": self.scheduler.get_last_lr()[0], **parts}
 
+    def _skip(self, buffers: dict, why: str) -> None:
+        """Skip this step (``why``, for the warning): no update, the BatchNorm statistics
+        ``buffers`` put back, the schedule advanced."""
+        self.skipped += 1
+        self.consecutive_bad += 1
+        log.warning("step %d: %s; step skipped (%d so far)", self.step, why, self.skipped)
+        self.optimizer.zero_grad(set_to_none=True)
+        with torch.no_grad():
+            for n, b in self.model.named_buffers():
+                if n in buffers:
+                    b.copy_(buffers[n])
+        # A skipped step still counts (its batch is consumed, ``step`` advances), and the
+        # learning rate stays a function of ``step``: the schedule advances too, so a run
+        # with skips ends its schedule at ``train.steps`` like one without. (torch warns
+        # when the very first step is skipped, the optimizer not having stepped yet; the
+        # schedule's first value is then consumed by the skipped step, as intended.)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler")
+            self.scheduler.step()
+
+    def _stop_if_diverged(self) -> None:
+        """After a skipped step, a ``TrainingStopped`` when the parameters are no longer
+        finite (every later step would fail too; they are not saved) or after
+        ``train.max_nonfinite`` skipped steps in a row (the state is saved: the parameters
+        of the last good step)."""
+        if not self.parameters_finite():
+            raise TrainingStopped(f"the parameters are non-finite (NaN or Inf) after step "
+                                  f"{self.step}; stopped without saving them. "
+                                  f"{self.last_good()}")
+        if self.consecutive_bad >= self.config.train.max_nonfinite:
+            path = self.save()
+            raise TrainingStopped(
+                f"{self.consecutive_bad} steps in a row had a non-finite loss or "
+                f"gradient (last at step {self.step}); stopped. The last good state "
+                f"is in {path or self.checkpoint_path}: lower optimizer.lr or check "
+                f"the data, then resume")
+
     # -- the loop --
     def _on_signal(self, signum, frame):
         self._stop_signal = signum
         log.warning("signal %d: saving a checkpoint after this step", signum)
 
+    def hold_folder(self) -> contextlib.AbstractContextManager:
+        """Hold ``output_dir`` (``run_folder_lock``) on rank 0, which alone writes there;
+        other ranks get a context that does nothing. ``fit()`` holds it; ``train()`` holds it
+        across ``resume()`` and ``fit()``."""
+        return run_folder_lock(self.out) if self.rank == 0 else contextlib.nullcontext()
+
+    #: The columns of metrics.csv.
+    METRICS = ("step", "loss", "mse", "lpips", "depth", "target_depth", "psnr", "grad_norm",
+               *GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s")
+
     def fit(self) -> dict:
         """Train to ``train.steps`` (or a signal), logging, checkpointing and validating
-        on the way; returns the last step's statistics."""
-        tc = self.config.train
-        steps = tc.steps
-        self.out.mkdir(parents=True, exist_ok=True)
-        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        metrics_path = self.out / "metrics.csv"
-        writer = None
-        if self.rank == 0:
-            rows = []
-            if metrics_path.exists():  # keep the rows of the steps this run has kept
-                with open(metrics_path) as f:
-                    rows = [r for r in csv.DictReader(f) if int(r["step"]) <= self.step]
-            f = open(metrics_path, "w", newline="")
-            fields = ["step", "loss", "mse", "lpips", "depth", "target_depth", "psnr",
-                      "grad_norm", *self.GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s",
-                      "time_s"]
-            writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(rows)
-        board = None
-        if self.rank == 0:
-            try:  # TensorBoard when it is installed (optional)
-                from torch.utils.tensorboard import SummaryWriter
-
-                board = SummaryWriter(str(self.out / "tensorboard"), purge_step=self.step)
-            except ImportError:
-                pass
-        bar = None
-        if self.rank == 0 and tc.progress:
-            bar = tqdm(total=steps, initial=self.step, desc="train", dynamic_ncols=True)
-        start, t0, last = self.step, time.perf_counter(), {}
-        keeper = None
-        if _cores.wanted(self.config.keep_cores_awake, torch.get_num_threads(),
-                         self.device.type):
-            keeper = _cores.CoreKeeper().start()
-        try:
-            while self.step < steps:
-                self.step_tracker.set_step(self.step)
-                batch = self.batches.next()
-                if self._val_batch is None:
-                    self._val_batch = self.validation_batch(batch)
-                stats = self.train_step(batch)
-                if stats is None and self.consecutive_bad >= tc.max_nonfinite:
-                    path = self.save()
-                    raise TrainingStopped(
-                        f"{self.consecutive_bad} steps in a row had a non-finite loss or "
-                        f"gradient (last at step {self.step}); stopped. The last good state "
-                        f"is in {path or self.checkpoint_path}: lower optimizer.lr or check "
-                        f"the data, then resume")
-                self.step += 1
-                if stats is not None:
-                    last = stats
-                elapsed = time.perf_counter() - t0
-                rate = (self.step - start) / max(elapsed, 1e-9)
-                if writer is not None and (self.step % tc.log_every == 0
-                                           or self.step == steps) and last:
-                    writer.writerow({"step": self.step, **last, "skipped": self.skipped,
-                                     "steps_per_s": rate, "time_s": elapsed})
-                    f.flush()
-                    if board is not None:
-                        for key, value in last.items():
-                            board.add_scalar(f"train/{key}", value, self.step)
-                if bar is not None:
-                    bar.update(1)
-                    if last:
-                        bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
-                                        skipped=self.skipped)
-                if self.step % tc.checkpoint_every == 0 or self.step == steps:
-                    self.save()
-                if self.rank == 0 and (self.step % tc.validate_every == 0
-                                       or self.step == steps):
-                    self.validate()
-                stop = self._stop_signal is not None
-                if self.world > 1:  # all ranks stop after the same step (else: a hang)
-                    flag = torch.tensor(float(stop), device=self.device)
-                    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-                    stop = bool(flag > 0)
-                if stop:
-                    self.save()
-                    who = f"rank {self.rank} " if self.world > 1 else ""
-                    log.warning("%sstopped by signal %s at step %d; resume with --resume", who,
-                                self._stop_signal, self.step)
-                    break
-        finally:
-            if keeper is not None:
-                keeper.stop()
-            for s, h in old.items():
-                signal.signal(s, h)
-            if bar is not None:
-                bar.close()
-            if writer is not None:
-                f.close()
-            if board is not None:
-                board.close()
+        on the way; returns the last step's statistics. Holds the run folder meanwhile."""
+        with self.hold_folder():
+            old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+            keeper = None
+            if _cores.wanted(self.config.keep_cores_awake, torch.get_num_threads(),
+                             self.device.type):
+                keeper = _cores.CoreKeeper().start()
+            try:
+                self._open_logs()
+                last = self._loop()
+            finally:
+                if keeper is not None:
+                    keeper.stop()
+                for s, h in old.items():
+                    signal.signal(s, h)
+                self._close_logs()
         digest = parameter_digest(self.model)
         if len(set(gather(digest))) > 1:  # DDP keeps them equal; if not, say so
             log.error("rank %d: the ranks hold different parameters after step %d (digests "
@@ -503,6 +756,83 @@ class Trainer:
                       gather(digest))
         return {"step": self.step, "skipped": self.skipped, "rank": self.rank,
                 "params_sha256": digest, **last}
+
+    def _open_logs(self) -> None:
+        """metrics.csv, TensorBoard (when installed) and the progress bar, on rank 0."""
+        self._metrics = self._board = self._bar = None
+        if self.rank != 0:
+            return
+        self._metrics = MetricsLog(self.out / "metrics.csv", list(self.METRICS), self.step)
+        try:  # TensorBoard when it is installed (optional)
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._board = SummaryWriter(str(self.out / "tensorboard"), purge_step=self.step)
+        except ImportError:
+            pass
+        if self.config.train.progress:
+            self._bar = tqdm(total=self.config.train.steps, initial=self.step, desc="train",
+                             dynamic_ncols=True)
+
+    def _close_logs(self) -> None:
+        for log_file in (self._bar, self._board, self._metrics):
+            if log_file is not None:
+                log_file.close()
+
+    def _loop(self) -> dict:
+        """The steps, up to ``train.steps`` or a signal; returns the last good step's
+        statistics."""
+        tc = self.config.train
+        start, t0, last = self.step, time.perf_counter(), {}
+        while self.step < tc.steps:
+            self.step_tracker.set_step(self.step)
+            batch = self.batches.next()
+            if self._val_batch is None:
+                self._val_batch = self.validation_batch(batch)
+            stats = self.train_step(batch)
+            if stats is None:
+                self._stop_if_diverged()
+            self.step += 1
+            if stats is not None:
+                last = stats
+            elapsed = time.perf_counter() - t0
+            self._log(last, (self.step - start) / max(elapsed, 1e-9), elapsed)
+            if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
+                self.save()
+            if self.rank == 0 and (self.step % tc.validate_every == 0
+                                   or self.step == tc.steps):
+                self.validate()
+            if self._stopped_by_signal():
+                break
+        return last
+
+    def _log(self, last: dict, rate: float, elapsed: float) -> None:
+        """A row of metrics.csv and TensorBoard every ``train.log_every`` steps, and the bar."""
+        if self._metrics is not None and last and (self.step % self.config.train.log_every == 0
+                                                   or self.step == self.config.train.steps):
+            self._metrics.write({"step": self.step, **last, "skipped": self.skipped,
+                                 "steps_per_s": rate, "time_s": elapsed})
+            if self._board is not None:
+                for key, value in last.items():
+                    self._board.add_scalar(f"train/{key}", value, self.step)
+        if self._bar is not None:
+            self._bar.update(1)
+            if last:
+                self._bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
+                                      skipped=self.skipped)
+
+    def _stopped_by_signal(self) -> bool:
+        """After a SIGINT/SIGTERM: save and say so (all ranks stop after the same step)."""
+        stop = self._stop_signal is not None
+        if self.world > 1:  # all ranks stop after the same step (else: a hang)
+            flag = torch.tensor(float(stop), device=self.device)
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+            stop = bool(flag > 0)
+        if stop:
+            self.save()
+            who = f"rank {self.rank} " if self.world > 1 else ""
+            log.warning("%sstopped by signal %s at step %d; resume with --resume", who,
+                        self._stop_signal, self.step)
+        return stop
 
     def validation_batch(self, fallback: dict) -> dict:
         """The first example of the validation stage (the dataset's test folder) when there
@@ -513,8 +843,9 @@ class Trainer:
         except (ValueError, FileNotFoundError, StopIteration):
             example = None
         if example is None:
-            return {side: {k: v[:1] for k, v in fallback[side].items()}
-                    for side in ("context", "target")}
+            first = {side: {k: v[:1] for k, v in fallback[side].items()}
+                     for side in ("context", "target")}
+            return {**first, "scene": fallback["scene"][:1]}  # save_comparison names it
         return default_collate([example])
 
     @torch.no_grad()
@@ -525,14 +856,17 @@ class Trainer:
             return None
         self.model.eval()
         out = self.model(*model_inputs(self._val_batch, self.device))
-        return save_comparison(self.out / "validation" / f"step_{self.step:07d}.png",
-                               self._val_batch, out)
+        # validation/step_0000002_<scene>.png (save_comparison names the file after the scene)
+        return save_comparison(self.out / "validation", self._val_batch, out,
+                               prefix=f"step_{self.step:07d}_")
 
 
 def train(cfg: dict | RootCfg, resume: bool = False) -> dict:
     """Train with ``cfg`` (see ``Trainer``), from the last checkpoint when ``resume`` and one
     exists; returns the last step's statistics (``step``, ``skipped``, ``loss``, ``psnr``,
-    ``rank``, ``params_sha256``...).
+    ``rank``, ``params_sha256``...). The run folder is held (rank 0) once the configuration,
+    model and data are checked, before anything is read from it or written there: a second run
+    there stops then, and a mistaken configuration leaves no folder behind.
 
     Under torchrun, an exception on any rank becomes ``RankFailed`` on every rank, with the
     message of the rank that failed first (``usplat_dr.training.distributed.rank_failure``);
@@ -541,9 +875,11 @@ def train(cfg: dict | RootCfg, resume: bool = False) -> dict:
     trainer = None
     try:
         trainer = Trainer(cfg)
-        if resume and not trainer.resume():
-            log.info("no checkpoint in %s: starting from step 0", trainer.checkpoint_path.parent)
-        result = trainer.fit()
+        with trainer.hold_folder():
+            if resume and not trainer.resume():
+                log.info("no checkpoint in %s: starting from step 0",
+                         trainer.checkpoint_path.parent)
+            result = trainer.fit()
     except Exception as e:
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world <= 1:
