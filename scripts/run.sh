@@ -4,6 +4,7 @@
 #   bash scripts/run.sh demo [ARGS]    the main job: synthetic data, train (a) and (c), evaluate,
 #                                      report (outputs/demo/report.md; --quick: small budget)
 #   bash scripts/run.sh test [ARGS]    run the test suite (pytest ARGS)
+#   bash scripts/run.sh lint [ARGS]    the linter, run by CI before the tests (ruff check . ARGS)
 #   bash scripts/run.sh doctor         report versions, libLLVM, backends, GPU
 #   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench_rasterizer.py)
 #   bash scripts/run.sh setup          only install
@@ -131,8 +132,9 @@ case "$command" in
     setup) setup ;;
     demo) setup; cd "$ROOT"; exec "$VENV/bin/usplat" demo "$@" ;;
     test) setup; cd "$ROOT"; exec "$VENV/bin/python" -m pytest "$@" ;;
+    lint) setup; cd "$ROOT"; exec "$VENV/bin/ruff" check . "$@" ;;
     doctor) setup; exec "$VENV/bin/usplat" doctor ;;
     bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench_rasterizer.py "$@" ;;
     gpu-check) cd "$ROOT"; gpu_check "$@" ;;
-    *) sed -n '2,16p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+    *) sed -n '2,17p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

@@ -259,7 +259,7 @@ def test_bad_scene_records_are_skipped_with_a_warning(case, tmp_path, caplog):
     _, record = RECORD_CASES[case]
     key = record.get("key") if isinstance(record, dict) else None
     # the index names the good scene's key; a record without one is still in the chunk
-    stage = write_plain_dataset(tmp_path, "test", [[record]], index={"s0": "000000.torch"})
+    write_plain_dataset(tmp_path, "test", [[record]], index={"s0": "000000.torch"})
     names = ["000000.torch"] + ([key] if isinstance(key, str) else [])
     expect_skip("scene records", tmp_path, names, caplog)
 
@@ -338,7 +338,7 @@ def test_corrupt_evaluation_indices_name_the_file(tmp_path, caplog):
         index.write_bytes(content)
         # a flip can turn the key "s0" into another: valid JSON, with no entry for s0
         expect_error_or_read("evaluation indices", index,
-                             lambda: read_evaluation_index(index), may_read=kind == "flipped")
+                             lambda: read_evaluation_index(index), may_read=kind == "flipped")  # noqa: B023 (called in this iteration)
     # an entry naming frames the scene does not have: valid JSON, the scene skipped with a
     # warning naming the index, the chunk and the scene (and no overflow at 10**30)
     for frame in (6, 10**12, 10**30):
@@ -395,7 +395,7 @@ def test_corrupt_ply_files_name_the_file(tmp_path):
         path.write_bytes(content)
         # a flip in the data is a changed Gaussian (unless it makes a NaN: an error);
         # in the header it can leave a valid one ("comment" -> "comMent" in a comment line)
-        expect_error_or_read("PLY files", path, lambda: read_ply(path),
+        expect_error_or_read("PLY files", path, lambda: read_ply(path),  # noqa: B023 (called in this iteration)
                              may_read=kind in ("flipped", "header"))
 
 
@@ -447,7 +447,7 @@ def test_corrupt_checkpoints_name_the_file(tmp_path, caplog):
         # eval/render/export-ply's model, the image shape they default to, model.init_from;
         # a flip in a weight's bytes is another weight (unless it makes a NaN: an error)
         for name, read in readers.items():
-            expect_error_or_read(f"checkpoints ({name})", path, lambda: read(path),
+            expect_error_or_read(f"checkpoints ({name})", path, lambda: read(path),  # noqa: B023 (called in this iteration)
                                  may_read=name in readable)
 
 
@@ -475,7 +475,7 @@ def test_corrupt_yaml_configs_name_the_file(tmp_path):
         path.write_bytes(content)
         # YAML cut at a line end, or a flipped digit, can be a valid config; an empty file is
         # an empty mapping (the defaults)
-        expect_error_or_read("YAML configs", path, lambda: RootCfg.load(load_config([path])),
+        expect_error_or_read("YAML configs", path, lambda: RootCfg.load(load_config([path])),  # noqa: B023 (called in this iteration)
                              may_read=kind in ("flipped", "truncated", "empty"))
 
 

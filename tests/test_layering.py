@@ -110,7 +110,7 @@ def test_function_local_imports_give_a_reason():
     """Function-local imports only where they protect start-up time or the libLLVM order, each
     with its reason in a comment on its line or the line above."""
     silent = []
-    for name, path in MODULES.items():
+    for path in MODULES.values():
         lines = path.read_text().splitlines()
         for fn in ast.walk(ast.parse("\n".join(lines))):
             if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):

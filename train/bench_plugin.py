@@ -26,7 +26,7 @@ def main() -> None:
     p.add_argument("--variant", default="llvm_ad_rgb")
     args = p.parse_args()
 
-    import usplat_dr.plugins as plugins  # noqa: I001 (first: finds libLLVM before drjit loads)
+    from usplat_dr import plugins  # noqa: I001 (first: finds libLLVM before drjit loads)
     import drjit as dr
     import mitsuba as mi
     import torch

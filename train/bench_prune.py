@@ -25,7 +25,6 @@ rendered. Net saving = none's ms/view - the setting's. Prints a Markdown table a
 """
 
 import argparse
-import json
 import platform
 import statistics
 import time
@@ -163,8 +162,8 @@ def main() -> None:
     batches = scenes(args.data, args.split, args.scenes)
     grid = settings_grid()
     results = {}
-    lines = ["| size | Gaussians/view | pruning | ms/view | CPU ms/view | pruning ms | "
-             "rasteriser ms | rasteriser saves ms | net saving ms/view | kept | dPSNR vs none |",
+    lines = [("| size | Gaussians/view | pruning | ms/view | CPU ms/view | pruning ms | "
+              "rasteriser ms | rasteriser saves ms | net saving ms/view | kept | dPSNR vs none |"),
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for size in args.sizes:
         rows = measure(model, batches, size, grid)

@@ -26,7 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import usplat_dr  # noqa: F401, I001  (chooses libLLVM before drjit is imported)
+import usplat_dr  # noqa: F401  (chooses libLLVM before drjit is imported)
+
+# isort: split
 import drjit as dr
 import torch
 
@@ -230,17 +232,18 @@ def main() -> None:
         dense_cols = ("-", "-")
         if dense:
             df, dfb = t["dense_fwd"], t["dense_fwd_bwd"]
-            dense_cols = (f"{df[0]:.0f} / {dfb[0]:.0f}", f"{df[0] / f[0]:.0f}x / "
-                          f"{dfb[0] / fb[0]:.0f}x")
+            dense_cols = (f"{df[0]:.0f} / {dfb[0]:.0f}",
+                          f"{df[0] / f[0]:.0f}x / {dfb[0] / fb[0]:.0f}x")
         nf, nfb = t["native_fwd"], t["native_fwd_bwd"]
         cp, cn = t["checks_previous"], t["checks_now"]
         bridge_rows.append(f"| {size}x{size} | {f[0]:.2f} | {nf[0]:.2f} | {f[0] - nf[0]:+.2f} | "
                            f"{fb[0]:.2f} | {nfb[0]:.2f} | {fb[0] - nfb[0]:+.2f} | "
                            f"{cp[0]:.2f} ({cp[1]:.2f}) | {cn[0]:.2f} ({cn[1]:.2f}) |")
         target = TARGETS.get(size)
+        goal = f"{target[0]:g} / {target[1]:g}" if target else "-"
         print(f"| {size}x{size} | {scene.means.shape[1]:,} | {pairs:,} | {f[0]:.1f} ({f[1]:.1f}) "
               f"| {fb[0]:.1f} ({fb[1]:.1f}) | {cold:.0f} | {peak:.0f} | {dense_cols[0]} | "
-              f"{dense_cols[1]} | {'%g / %g' % target if target else '-'} |", flush=True)
+              f"{dense_cols[1]} | {goal} |", flush=True)
         if args.breakdown:
             for name, fn in (("fwd", fwd), ("fwd+bwd", fwd_bwd)):
                 rows = kernel_breakdown(fn)

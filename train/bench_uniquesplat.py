@@ -156,6 +156,8 @@ def main() -> None:
         import torch
 
         import usplat_dr  # noqa: F401  (points Dr.Jit at libLLVM before drjit is imported)
+
+        # isort: split
         import drjit as dr
 
         torch.set_num_threads(args.threads)
@@ -185,7 +187,7 @@ def main() -> None:
               f"{where}; variants alternated run by run, best of "
               f"{args.processes} processes (median of {args.repeats} runs each)")
 
-        def best(name, key, what):
+        def best(name, key, what, runs=runs):  # B023: this iteration's values
             return min(r[name][key][what] for r in runs)
 
         base = {key: best("(a) baseline", key, "wall") for key in ("model", "render")}

@@ -37,7 +37,7 @@ def perspective_sensor(c2w_cv: np.ndarray, k: np.ndarray, size: tuple[int, int],
 def run(kind: str = "indoor", seed: int = 3, size: int = 48, frames: int = 12,
         iterations: int = 150, out: str | Path = "outputs/mitsuba_inverse",
         variant: str = "llvm_ad_rgb", progress: bool = True) -> dict:
-    import usplat_dr.plugins as plugins  # noqa: I001 (first: finds libLLVM before drjit loads)
+    from usplat_dr import plugins  # noqa: I001 (first: finds libLLVM before drjit loads)
     import drjit as dr
     import mitsuba as mi
 

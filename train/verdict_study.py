@@ -10,9 +10,9 @@ of them on the same held-out scenes, and compare paired per-scene differences wi
 Each run trains and evaluates in its own process with one thread (``--jobs`` at a time) and
 is resumable: a second call skips finished runs and resumes killed ones. Writes
 ``<out>/verdict.md``, ``verdict.json``, ``verdict.png``, ``labels.json`` (per split, (c) - (a)
-on PSNR with both intervals and the pre-registered rule's label) and ``runs.json`` (steps and seconds
-per step of every run: the equal-wall-time view); ``--also-eval`` repeats the comparison on
-more held-out sets (``verdict_<set>.md``), the same runs on other scenes.
+on PSNR with both intervals and the pre-registered rule's label) and ``runs.json`` (steps and
+seconds per step of every run: the equal-wall-time view); ``--also-eval`` repeats the
+comparison on more held-out sets (``verdict_<set>.md``), the same runs on other scenes.
 """
 
 import argparse

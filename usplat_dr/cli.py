@@ -16,26 +16,26 @@ from usplat_dr import portable
 #: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
 COMMANDS = {
     "doctor": ("doctor", "report versions, libLLVM, backends, GPU; exit 1 on problems"),
-    "render-demo": ("render_demo", "render a procedural Gaussian scene from several cameras to "
-                    "PNGs"),
+    "render-demo": ("render_demo",
+                    "render a procedural Gaussian scene from several cameras to PNGs"),
     "params": ("params", "parameter count of a UniqueSplat configuration, per part"),
-    "train": ("train", "train UniqueSplat (any variant) with the field's recipe; also under "
-              "torchrun (DistributedDataParallel)"),
-    "eval": ("evaluate", "evaluate a trained model with the field's protocol (per-scene CSV, "
-             "summary JSON, renders)"),
-    "render": ("render_video", "a video (mp4 with ffmpeg, else GIF) along a path between the "
-               "context views and a wobble around them"),
-    "export-ply": ("export_ply", "the Gaussians predicted for one target view, as a standard "
-                   "3DGS PLY"),
-    "demo": ("demo", "the main job: synthetic data, train (a) and (c), evaluate, write a "
-             "report (about 15 minutes on 2 CPU cores)"),
-    "bench": ("bench", "speed against accuracy: train (or reuse) size presets x variants on "
-              "the demo's data, measure time per view, memory, Gaussians and accuracy; CSV + "
-              "chart in OUT/bench"),
-    "synth": ("synth", "render procedural scenes with known geometry (Mitsuba) into the "
-              "field's chunk format, with evaluation and stress splits"),
-    "fit": ("fit_scene", "per-scene Gaussian optimisation on a synthetic scene (renderer "
-            "check): held-out PSNR/SSIM and a PNG of renders"),
+    "train": ("train", ("train UniqueSplat (any variant) with the field's recipe; also under "
+                        "torchrun (DistributedDataParallel)")),
+    "eval": ("evaluate", ("evaluate a trained model with the field's protocol (per-scene CSV, "
+                          "summary JSON, renders)")),
+    "render": ("render_video", ("a video (mp4 with ffmpeg, else GIF) along a path between the "
+                                "context views and a wobble around them")),
+    "export-ply": ("export_ply",
+                   "the Gaussians predicted for one target view, as a standard 3DGS PLY"),
+    "demo": ("demo", ("the main job: synthetic data, train (a) and (c), evaluate, write a "
+                      "report (about 15 minutes on 2 CPU cores)")),
+    "bench": ("bench", ("speed against accuracy: train (or reuse) size presets x variants on "
+                        "the demo's data, measure time per view, memory, Gaussians and "
+                        "accuracy; CSV + chart in OUT/bench")),
+    "synth": ("synth", ("render procedural scenes with known geometry (Mitsuba) into the "
+                        "field's chunk format, with evaluation and stress splits")),
+    "fit": ("fit_scene", ("per-scene Gaussian optimisation on a synthetic scene (renderer "
+                          "check): held-out PSNR/SSIM and a PNG of renders")),
 }
 
 

@@ -32,7 +32,7 @@ def test_bounded_gap_follows_the_schedule(step, gap):
     """min(25 + int(20 * step / 150000), 45), and always exactly that (pixelSplat's max_gap)."""
     s = get_view_sampler(ViewSamplerBoundedCfg(), "train", StepTracker(step))
     g = torch.Generator().manual_seed(0)
-    gaps = {int((lambda c: c[1] - c[0])(s.sample("x", 300, g)[0])) for _ in range(50)}
+    gaps = {int(c[1] - c[0]) for c in (s.sample("x", 300, g)[0] for _ in range(50))}
     assert gaps == {gap}
 
 
@@ -158,7 +158,7 @@ def test_one_chunk_feeds_every_rank_and_worker(tmp_path, ranks, workers):
     total = ranks * max(workers, 1)
     per = -(-5 // total)  # scenes per global worker after padding
     assert [len(keys) for keys in per_rank] == [per * max(workers, 1)] * ranks
-    seen = sum(per_rank, [])
+    seen = [key for keys in per_rank for key in keys]
     assert sorted(set(seen)) == [s["key"] for s in scenes]
     assert len(seen) == per * total  # the 5 scenes and per * total - 5 padding repeats
 

@@ -79,7 +79,7 @@ def test_lpips_matches_the_definition(tmp_path):
 
 
 def test_lpips_weight_files_are_checked(tmp_path):
-    vgg_path, lin_path, vgg, lin = weight_files(tmp_path)
+    vgg_path, lin_path, _vgg, lin = weight_files(tmp_path)
     with pytest.raises(LPIPSWeightsMissing, match="vgg16-397923af.pth"):
         LPIPS.from_files(tmp_path / "nope.pth", lin_path)
     with pytest.raises(LPIPSWeightsMissing, match="lpips/weights/v0.1/vgg.pth"):

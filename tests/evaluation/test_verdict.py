@@ -75,7 +75,7 @@ def test_compare_pairs_scenes_and_seeds(tmp_path):
     assert by[("glossy", "psnr")].verdict == "worse"
     assert by[("standard", "abs_rel")].verdict == "better"  # lower is better
     assert by[("standard", "ssim")].verdict == "no difference shown"
-    assert [r.split for r in rows][0] == "standard"
+    assert rows[0].split == "standard"
     assert "(c) - (a)" in table(rows)
     assert chart(rows, tmp_path / "verdict.png").stat().st_size > 0
     with pytest.raises(ValueError, match="same number of seeds"):

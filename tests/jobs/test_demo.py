@@ -34,13 +34,14 @@ def wheel_demo(tmp_path_factory) -> Path:
     source = tmp / "source"
     shutil.copytree(ROOT, source, symlinks=True, ignore=shutil.ignore_patterns(
         ".git", ".venv", "build", "dist", "*.egg-info", "outputs", "__pycache__", ".*_cache"))
-    run = dict(check=True, capture_output=True, text=True)
+    run = dict(capture_output=True, text=True)
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-                    "--disable-pip-version-check", "-w", str(tmp / "dist"), str(source)], **run)
+                    "--disable-pip-version-check", "-w", str(tmp / "dist"), str(source)],
+                   check=True, **run)
     wheel, = (tmp / "dist").glob("usplat_dr-*.whl")
     site = tmp / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--target", str(site),
-                    "--disable-pip-version-check", str(wheel)], **run)
+                    "--disable-pip-version-check", str(wheel)], check=True, **run)
     deps = sorted({sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]})
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), *deps])}
     elsewhere = tmp / "elsewhere"  # not the repository: nothing is read relative to it
@@ -49,11 +50,11 @@ def wheel_demo(tmp_path_factory) -> Path:
     # the console script the wheel installs (`usplat`), run by this Python without site
     proc = subprocess.run([sys.executable, "-S", str(site / "bin" / "usplat"), "demo",
                            "--quick", "--out", str(out)], cwd=elsewhere, env=env,
-                          capture_output=True, text=True)
+                          capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     where = subprocess.run([sys.executable, "-S", "-c",
                             "import usplat_dr; print(usplat_dr.__file__)"],
-                           cwd=elsewhere, env=env, **run).stdout.strip()
+                           cwd=elsewhere, env=env, check=True, **run).stdout.strip()
     assert Path(where) == site / "usplat_dr" / "__init__.py"
     return out
 

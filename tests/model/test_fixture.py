@@ -38,7 +38,8 @@ def run(net, fixture_dev):
 
 def test_weights_are_the_fixtures(weights, fixture_dev):
     # Per-key float64 sum and sum of squares of the weights the fixture was made with; the
-    # tests/fixtures/README.md: ~1e-7 relative is the scalar-vs-vector RNG path, more means other weights.
+    # tests/fixtures/README.md: ~1e-7 relative is the scalar-vs-vector RNG path, more means
+    # other weights.
     fp = fingerprint({"encoder." + k: v for k, v in weights.items()})
     for key, (s, ss) in fixture_dev["weights_fingerprint"].items():
         assert abs(fp[key][1] - ss) <= 1e-5 * abs(ss), key
@@ -105,5 +106,6 @@ def test_gaussian_adapter_in_isolation(fixture_dev):
 
 def test_sh_rotation_case(fixture_dev):
     case = fixture_dev["sh_rotation_case"]
-    # 2e-6 x ~3.3: tests/fixtures/README.md gives float64 vs MVSplat's float32 e3nn at 6.3e-6 absolute.
+    # 2e-6 x ~3.3: tests/fixtures/README.md gives float64 vs MVSplat's float32 e3nn at 6.3e-6
+    # absolute.
     check(case, "sh_rotated", rotate_sh(case["sh"], case["rotation"]), 3e-6)

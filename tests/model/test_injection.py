@@ -120,7 +120,7 @@ def test_a_bias_per_target_and_context_view(b):
     gen = torch.Generator().manual_seed(7 + b)
     x = torch.randn(v * b, 6, h, w, generator=gen, dtype=torch.float64)
     layers = make([(8, 6), (4, 8)], 2, (1,), b, n, gen)
-    wt, bias, d = layers[1]
+    _wt, _bias, d = layers[1]
     d.bias = torch.randn(b * n, v, 4, generator=gen, dtype=torch.float64)
     y, per_target = run_head(x.contiguous(memory_format=torch.channels_last), layers, v, b, n)
     ref = reference(x, layers, v, b, n)

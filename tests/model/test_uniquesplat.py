@@ -274,7 +274,7 @@ def test_bad_configuration_and_inputs_name_the_argument():
     cfg = UniqueSplatCfg.from_dict({"primary": {"d_feature": 64}, "phi_channels": [8, 8, 8, 8]})
     assert cfg.primary.d_feature == 64 and cfg.phi_channels == (8, 8, 8, 8)
     model = UniqueSplat.from_preset("tiny", variant="baseline")
-    images, k, e, near, far, tk, te, tn, tf = scene(n=2)
+    _images, _k, _e, _near, _far, tk, te, tn, tf = scene(n=2)
     with pytest.raises(ValueError, match="target_extrinsics must have shape"):
         model.check_targets(1, tk, te[:, :, :3], tn, tf)
     with pytest.raises(ValueError, match="target_near must have shape"):

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import torch
 
+from usplat_dr.render import RasterSettings, rasterize
+
 mi = pytest.importorskip("mitsuba")  # Mitsuba's plugins; a GPU image without it skips them
 
-import usplat_dr.plugins as plugins  # (after the skip: it imports Mitsuba)
-from usplat_dr.render import RasterSettings, rasterize
+from usplat_dr import plugins  # noqa: E402 (after the skip: it imports Mitsuba)
 
 
 @pytest.fixture(autouse=True)
@@ -204,7 +205,7 @@ def test_model_gaussians_round_trip_through_mitsuba():
 def test_plugin_conventions_and_errors():
     integrator = mi.load_dict({"type": "usplat_splat", "tile_size": 8})
     assert "tile_size = 8" in integrator.to_string()
-    assert "background" in mi.traverse(integrator).keys()
+    assert "background" in mi.traverse(integrator)
     assert "pluginparameters" in plugins.integrator_class().__doc__
     with pytest.raises(Exception, match="tile_size"):
         mi.load_dict({"type": "usplat_splat", "tile_size": 5})
@@ -249,8 +250,8 @@ def test_readme_rasteriser_snippets_run(tmp_path, monkeypatch):
 
     text = (Path(__file__).parents[2] / "README.md").read_text()
     section = text.split("## The rasteriser", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    blocks = re.findall(r"```python\n(.*?)```", section, re.DOTALL)
     assert len(blocks) == 3 and "mi.render" in blocks[2]
     monkeypatch.chdir(tmp_path)
     for code in blocks:
-        exec(compile(code, "README.md", "exec"), {})
+        exec(compile(code, "README.md", "exec"), {})  # noqa: S102 (the README's own code)

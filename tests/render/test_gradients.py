@@ -141,7 +141,7 @@ def test_gradients_match_finite_differences(device, n):
             direction = 0.1 * (direction + direction.transpose(-1, -2))
         analytic = (leaf.grad * direction).sum().item()
 
-        def loss_at(step):
+        def loss_at(step, leaf=leaf, direction=direction):  # B023: this iteration's values
             with torch.no_grad():
                 saved = leaf.clone()
                 leaf.add_(step * direction)

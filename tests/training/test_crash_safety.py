@@ -108,7 +108,7 @@ def test_killed_and_signalled_runs_resume_to_the_uninterrupted_result(data, tmp_
             # file appears (mid-write), the others after a random delay within two steps
             # (measured on the uninterrupted run, so a faster CPU does not finish the run)
             before = stamp(ckpt_dir / "last.ckpt")
-            if not wait_for(lambda: stamp(ckpt_dir / "last.ckpt") != before, proc):
+            if not wait_for(lambda: stamp(ckpt_dir / "last.ckpt") != before, proc):  # noqa: B023 (called in this iteration)
                 pytest.fail(f"run {n} ended before it was signalled: "
                             f"{proc.communicate()[1].decode()[-2000:]}")
             if sig == signal.SIGKILL and n % 4 == 0:

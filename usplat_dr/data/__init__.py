@@ -25,7 +25,7 @@ from usplat_dr.data.view_sampler import (
 )
 
 __all__ = [
-    "BadChunkError", "BadSceneError", "ChunkDataset", "ChunkWriter", "DatasetCfg", "PRESETS",
+    "PRESETS", "BadChunkError", "BadSceneError", "ChunkDataset", "ChunkWriter", "DatasetCfg",
     "StepTracker", "Summary", "ViewSamplerAllCfg", "ViewSamplerBoundedCfg",
     "ViewSamplerEvaluationCfg", "ViewSamplingError", "cameras_to_matrices", "dataset_cfg",
     "decode_image", "encode_image", "get_view_sampler", "matrices_to_cameras", "read_chunk",

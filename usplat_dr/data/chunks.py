@@ -337,7 +337,7 @@ class ChunkWriter:
         if not self.index:
             write_index(self.stage_dir, {})
 
-    def __enter__(self) -> "ChunkWriter":
+    def __enter__(self) -> "ChunkWriter":  # noqa: PYI034 (typing.Self needs Python 3.11)
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

@@ -197,8 +197,8 @@ def compare(runs: dict[str, list[str | os.PathLike]], baseline: str = "baseline"
 def table(rows: list[Comparison], rule: bool = True) -> str:
     """The verdict as a Markdown table (``rule``: with the pre-registered rule's label, which
     is for (c) - (a) on PSNR only)."""
-    lines = ["| split | metric | difference | mean | 95% bootstrap (scenes x seeds) | "
-             "95% seed-level t | scenes x seeds | better in | verdict | rule (PSNR) |",
+    lines = [("| split | metric | difference | mean | 95% bootstrap (scenes x seeds) | "
+              "95% seed-level t | scenes x seeds | better in | verdict | rule (PSNR) |"),
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         seed = (f"[{r.seed_low:+.3f}, {r.seed_high:+.3f}]" if r.seeds >= 2 else

@@ -72,6 +72,6 @@ def load_torch_file(path: str | os.PathLike, what: str = "checkpoint", map_locat
                          f"({reason[:200]})") from None
     # anything else torch.load raises on a damaged file (RuntimeError, EOFError, BadZipFile,
     # OSError; KeyError or UnicodeDecodeError from a corrupt pickle) means "unreadable"
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 (any decoder error: see above)
         raise ValueError(f"{what} {str(path)!r} is not a file written by torch.save, or it "
                          f"is truncated ({type(e).__name__}: {str(e)[:200]})") from None

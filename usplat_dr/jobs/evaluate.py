@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     lpips = None
     if args.lpips_vgg or args.lpips_lin:
         lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)
-    model, step = load_model(args.checkpoint, args.device, args.trust_checkpoint)
+    model, _step = load_model(args.checkpoint, args.device, args.trust_checkpoint)
     model.inference_precision = args.precision
     if args.precision == "bfloat16" and args.device == "cpu":
         warn_slow_bfloat16()

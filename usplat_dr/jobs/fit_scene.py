@@ -229,7 +229,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    metavar=("H", "W"))
     p.add_argument("--spp", type=positive_int, default=256, help="Mitsuba samples per pixel")
     p.add_argument("--iterations", type=positive_int, default=1500)
-    p.add_argument("--out", type=out_folder, default="outputs/fit", help="folder for the PNG and JSON")
+    p.add_argument("--out", type=out_folder, default="outputs/fit",
+                   help="folder for the PNG and JSON")
 
 
 def run(args: argparse.Namespace) -> int:

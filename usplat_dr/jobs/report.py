@@ -84,8 +84,8 @@ def stability(run: Path) -> dict:
 def stability_lines(stable: dict) -> list[str]:
     if not stable:
         return []
-    lines = ["Gradient norms before clipping (clip at 0.5): median / maximum, and the last "
-             "quarter's median over the first quarter's; skipped non-finite steps.", "",
+    lines = [("Gradient norms before clipping (clip at 0.5): median / maximum, and the last "
+              "quarter's median over the first quarter's; skipped non-finite steps."), "",
              "| variant | part | median | max | last/first quarter |", "|---|---|---|---|---|"]
     for variant, st in stable.items():
         for key, p in st["parts"].items():
@@ -138,11 +138,11 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
     test = next(iter(summaries.values()))["splits"]["standard"]["scenes"]
     lines = [
         "# usplat-dr demo report", "",
-        f"Budget `{budget}`: {b.test_scenes} fresh held-out scenes rendered by Mitsuba "
-        f"({b.frames} frames, {b.size}x{b.size}; a seed none of the checkpoints was trained or "
-        f"tested on), the shipped `{PRESET}` checkpoints evaluated on them with the field's "
-        f"protocol, and a brief fine-tuning ({b.steps} steps on {b.train_scenes} other "
-        f"scenes) from the shipped (a).", "",
+        (f"Budget `{budget}`: {b.test_scenes} fresh held-out scenes rendered by Mitsuba "
+         f"({b.frames} frames, {b.size}x{b.size}; a seed none of the checkpoints was trained or "
+         f"tested on), the shipped `{PRESET}` checkpoints evaluated on them with the field's "
+         f"protocol, and a brief fine-tuning ({b.steps} steps on {b.train_scenes} other "
+         f"scenes) from the shipped (a)."), "",
         "## The shipped checkpoints on fresh scenes (standard split)", "",
         "| model | parameters | time per scene | peak memory | PSNR | SSIM | depth AbsRel |",
         "|---|---|---|---|---|---|---|"]
@@ -151,20 +151,21 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
         lines.append(f"| {_label(variant, manifest)} | {s['parameters'] / 1e6:.2f}M | "
                      f"{1000 * s['time_per_scene_s']:.0f} ms | {s['peak_memory_gib']:.2f} GiB "
                      f"| {std['psnr']:.2f} | {std['ssim']:.3f} | {std['abs_rel']:.3f} |")
-    lines += ["", f"(b) and (c) were initialised from `{BASE}` (zero-initialised hypernetwork "
-              f"outputs: they start exactly at it) and fine-tuned for the same steps, seed and "
-              f"data as (a) continued, the control they are paired with. Time per scene: 2 "
-              f"context views in, Gaussians and renders for every target (CPU, 2 threads). "
-              f"LPIPS: unavailable (no VGG/LPIPS weight files in the demo). Training recipes "
-              f"and data: `checkpoints/manifest.json`.", "",
+    lines += ["",
+              (f"(b) and (c) were initialised from `{BASE}` (zero-initialised hypernetwork "
+               f"outputs: they start exactly at it) and fine-tuned for the same steps, seed and "
+               f"data as (a) continued, the control they are paired with. Time per scene: 2 "
+               f"context views in, Gaussians and renders for every target (CPU, 2 threads). "
+               f"LPIPS: unavailable (no VGG/LPIPS weight files in the demo). Training recipes "
+               f"and data: `checkpoints/manifest.json`."), "",
               "## Verdict on view conditioning (these scenes, the shipped seed)", "",
-              f"Paired per-scene differences against (a) continued over the {test} fresh "
-              "scenes (the stress splits hold the scenes that qualify), with bootstrap 95% "
-              "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
-              "variation, so no row here is a verdict; the multi-seed one "
-              "(`train/verdict_study.py`) follows the table, and BENCHMARKS.md (\"View "
-              "conditioning as the paper has it\") has it in full with the oracle per layer "
-              "(`train/oracle_delta.py`).", "", verdict_table(verdict), "",
+              (f"Paired per-scene differences against (a) continued over the {test} fresh "
+               "scenes (the stress splits hold the scenes that qualify), with bootstrap 95% "
+               "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
+               "variation, so no row here is a verdict; the multi-seed one "
+               "(`train/verdict_study.py`) follows the table, and BENCHMARKS.md (\"View "
+               "conditioning as the paper has it\") has it in full with the oracle per layer "
+               "(`train/oracle_delta.py`)."), "", verdict_table(verdict), "",
               "![verdict](verdict.png)", "", *registered_lines(registered),
               "## Per split (PSNR / SSIM / depth AbsRel)", "",
               "| split | scenes | " + " | ".join(_label(v, manifest) for v in summaries) + " |",
@@ -174,8 +175,8 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
         cells = [_cells(s["splits"][split]) for s in summaries.values()]
         lines.append(f"| {split} | {m['scenes']} | " + " | ".join(cells) + " |")
     lines += ["", "### Worst cases", "",
-              "Per split, the held-out scene with the lowest PSNR (context views, ground truth, "
-              "prediction, depth per target)."]
+              ("Per split, the held-out scene with the lowest PSNR (context views, ground truth, "
+               "prediction, depth per target).")]
     for split in first["splits"]:
         for variant, w in worst.items():
             if split in w:
@@ -183,27 +184,27 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
                              f"({w[split + '_psnr']:.2f} dB)\n\n![{split}]"
                              f"({w[split].relative_to(out)})")
     lines += ["", "## Fine-tuning briefly from the shipped (a)", "",
-              f"{b.steps} steps of (a) and (c) from `{BASE}` on the demo's {b.train_scenes} "
-              f"training scenes (learning rate {FINETUNE_LR:g}, depth supervision as shipped; "
-              "(c)'s view-specific ResNet18 starts from random weights, as in the shipped "
-              "(c): no ImageNet weight file here), "
-              "evaluated on the standard split: it shows that training runs; at this length it "
-              "says nothing about the verdict.", "",
+              (f"{b.steps} steps of (a) and (c) from `{BASE}` on the demo's {b.train_scenes} "
+               f"training scenes (learning rate {FINETUNE_LR:g}, depth supervision as shipped; "
+               "(c)'s view-specific ResNet18 starts from random weights, as in the shipped "
+               "(c): no ImageNet weight file here), "
+               "evaluated on the standard split: it shows that training runs; at this length it "
+               "says nothing about the verdict."), "",
               "| model | PSNR / SSIM / AbsRel before | after |", "|---|---|---|"]
     for variant, s in tuned.items():
         lines.append(f"| {VARIANTS[variant]} | {_cells(summaries['base']['splits']['standard'])}"
                      f" | {_cells(s['splits']['standard'])} |")
     lines += ["", "![training curves](training_curves.png)", "", *stability_lines(stable),
               "## Speed against accuracy", "",
-              "The shipped (a) continued and (c), measured by `usplat bench`'s code on the "
-              "standard split: Gaussian budgets (pruning per target before rasterising) at "
-              f"{b.size}x{b.size} and a smaller render size.", "",
+              ("The shipped (a) continued and (c), measured by `usplat bench`'s code on the "
+               "standard split: Gaussian budgets (pruning per target before rasterising) at "
+               f"{b.size}x{b.size} and a smaller render size."), "",
               "![speed against accuracy](bench_demo/bench.png)", "",
               (out / "bench_demo" / "bench.md").read_text().rstrip(), "",
-              "Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; "
-              "safe: it costs less than 0.05 dB). Off by default at inference: on CPU it costs "
-              "more time than it saves at every size measured (BENCHMARKS.md, \"Pruning that "
-              "pays\").", "",
+              ("Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; "
+               "safe: it costs less than 0.05 dB). Off by default at inference: on CPU it costs "
+               "more time than it saves at every size measured (BENCHMARKS.md, \"Pruning that "
+               "pays\")."), "",
               "| pruning | worst PSNR change | kept | safe |", "|---|---|---|---|"]
     for name, p in sorted(bench["pruning"].items()):
         lines.append(f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | "
@@ -226,8 +227,9 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
               *[f"| data `{k}` | sha256 `{v}` |" for k, v in prov["data"].items()],
               *[f"| checkpoint `{n}` | sha256 `{e['sha256'][:16]}...`, {e['steps']} steps, "
                 f"data: {e['data']} |" for n, e in manifest.items()],
-              "", "Same command, same machine kind: docs/reproducibility.md says what is "
-              "pinned (USPLAT_PORTABLE) and what can still differ.",
+              "",
+              ("Same command, same machine kind: docs/reproducibility.md says what is "
+               "pinned (USPLAT_PORTABLE) and what can still differ."),
               "", "## Wall time", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {k} | {v:.0f} |" for k, v in timings.items()]
     path = out / "report.md"
@@ -303,8 +305,8 @@ def bench_table(rows: list[dict]) -> str:
     def fmt(v, spec):
         return "-" if v is None else format(v, spec)
 
-    lines = ["| config | params | pruning | size | ms/view | CPU ms/view | peak MiB | "
-             "Gaussians/view | kept | PSNR | dPSNR | SSIM | AbsRel |",
+    lines = [("| config | params | pruning | size | ms/view | CPU ms/view | peak MiB | "
+              "Gaussians/view | kept | PSNR | dPSNR | SSIM | AbsRel |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(

@@ -12,7 +12,8 @@ from usplat_dr.jobs.arguments import at_least, non_negative_int, out_folder, pos
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=out_folder, required=True, help="dataset root to write (<out>/<stage>/*.torch)")
+    p.add_argument("--out", type=out_folder, required=True,
+                   help="dataset root to write (<out>/<stage>/*.torch)")
     p.add_argument("--scenes", type=positive_int, default=32, help="number of scenes")
     p.add_argument("--frames", type=at_least(3), default=24, help="frames per scene (>= 3)")
     p.add_argument("--resolution", type=at_least(4), nargs=2, default=[64, 64],
@@ -32,7 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Mitsuba variant: llvm_ad_rgb (CPU) or cuda_ad_rgb")
     p.add_argument("--stage", default="test", choices=["train", "test"],
                    help="stage folder to write")
-    p.add_argument("--previews", type=non_negative_int, default=8, help="scenes to write preview PNGs for")
+    p.add_argument("--previews", type=non_negative_int, default=8,
+                   help="scenes to write preview PNGs for")
     p.add_argument("--chunk-scenes", type=positive_int, default=None, metavar="N",
                    help="at most N scenes per chunk file (default: chunks of up to 100 MB). "
                    "Training shards by scene, so any number of chunks trains on any number "

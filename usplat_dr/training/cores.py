@@ -94,7 +94,7 @@ class CoreKeeper:
             p.stdout.close()
         self.procs = []
 
-    def __enter__(self) -> "CoreKeeper":
+    def __enter__(self) -> "CoreKeeper":  # noqa: PYI034 (typing.Self needs Python 3.11)
         return self.start()
 
     def __exit__(self, *exc) -> None:

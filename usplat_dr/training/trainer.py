@@ -37,6 +37,7 @@ import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -240,8 +241,9 @@ def adam(params, lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr)
 
 
-def parameter_groups(model: torch.nn.Module, lr: float | int,
-                     hyper_lr_scale: float | int = 1.0) -> list[dict]:
+# `float | int`, not `float`: beartype (pytest's run-time type checks) rejects an int for a float.
+def parameter_groups(model: torch.nn.Module, lr: float | int,  # noqa: PYI041
+                     hyper_lr_scale: float | int = 1.0) -> list[dict]:  # noqa: PYI041
     """Adam's parameter groups: the primary network at ``lr``; the hypernetwork branches
     (e_a and H_a, H_s, the view-specific features) at ``lr * hyper_lr_scale``
     (``optimizer.hyper_lr_scale``: the per-branch learning rate of docs/learning.md; 1 is the
@@ -597,8 +599,9 @@ class Trainer:
     #: Parameter groups whose gradient norms (before clipping) go into metrics.csv: the
     #: primary network, the view-agnostic branch (e_a, H_a), the view-specific hypernetwork
     #: H_s and the view-specific features (ResNet18, lateral convs, Proj, phi).
-    GRAD_GROUPS = {"primary": "grad_primary", "agnostic": "grad_agnostic",
-                   "specific": "grad_specific", "view_embedding": "grad_view_features"}
+    GRAD_GROUPS: ClassVar[dict[str, str]] = {
+        "primary": "grad_primary", "agnostic": "grad_agnostic",
+        "specific": "grad_specific", "view_embedding": "grad_view_features"}
 
     def group_grad_norms(self) -> dict:
         """Gradient norms per part of the network (``GRAD_GROUPS``), before clipping."""

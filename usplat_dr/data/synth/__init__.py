@@ -8,8 +8,8 @@ preview images (``<out>/previews/<key>.png``: colour above depth).
 
 Each scene record carries, besides the standard keys: ``depths`` (float16 [V, H, W],
 camera-space z, +inf on a miss), ``materials`` (uint8 [V, H, W]: 0 miss, 1 textured,
-2 textureless, 3 glossy, 4 metal), ``near_far`` (float32 [2]), ``tags`` (list of str) and ``mitsuba``
-(the scene description, re-renderable with ``render_spec`` at any resolution).
+2 textureless, 3 glossy, 4 metal), ``near_far`` (float32 [2]), ``tags`` (list of str) and
+``mitsuba`` (the scene description, re-renderable with ``render_spec`` at any resolution).
 """
 
 import hashlib
@@ -32,7 +32,8 @@ from usplat_dr.io.images import colorize_depth, save_png
 
 log = logging.getLogger(__name__)
 
-__all__ = ["APPEARANCES", "KINDS", "SPLITS", "make_spec", "render_spec", "scene_record", "synthesize"]
+__all__ = ["APPEARANCES", "KINDS", "SPLITS", "make_spec", "render_spec", "scene_record",
+           "synthesize"]
 
 
 #: Samples per pixel by appearance (``synthesize``'s default).

@@ -2,11 +2,11 @@
 
 Colour: Mitsuba's ``direct`` integrator (emitter and BSDF sampling, no interreflection, so
 the noise is low at modest sample counts; the view-dependent appearance names ``path`` in its
-description, so that shiny surfaces reflect the scene), box pixel filter, linear radiance converted to sRGB
-and rounded to uint8. Depth: one ray per pixel centre, built from *our* intrinsics and OpenCV
-extrinsics (not from Mitsuba's sensor), intersected with the Mitsuba scene; camera-space z,
-``+inf`` where the ray misses. The colour image comes from Mitsuba's sensor; the tests pin that
-both agree (``tests/data/test_conventions.py``).
+description, so that shiny surfaces reflect the scene), box pixel filter, linear radiance
+converted to sRGB and rounded to uint8. Depth: one ray per pixel centre, built from *our*
+intrinsics and OpenCV extrinsics (not from Mitsuba's sensor), intersected with the Mitsuba
+scene; camera-space z, ``+inf`` where the ray misses. The colour image comes from Mitsuba's
+sensor; the tests pin that both agree (``tests/data/test_conventions.py``).
 """
 
 import math

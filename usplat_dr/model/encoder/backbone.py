@@ -98,7 +98,7 @@ def sine_position_embedding(h: int, w: int, channels: int, device=None) -> Tenso
 def add_window_position(x: Float[Tensor, "n c h w"], splits: int) -> Float[Tensor, "n c h w"]:
     """Add the sine embedding of one attention window to every window (UniMatch
     ``feature_add_position``): positions are relative to the window the token attends in."""
-    n, c, h, w = x.shape
+    n, c, h, w = x.shape  # noqa: RUF059 (unpacked to name the shape)
     pos = sine_position_embedding(h // splits, w // splits, c, x.device)
     return x + pos.repeat(1, splits, splits)[None]
 

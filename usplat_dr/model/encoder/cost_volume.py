@@ -26,7 +26,7 @@ def relative_poses(extrinsics: Float[Tensor, "b v 4 4"]) -> list[Tensor]:
     """For each shift s = 1..V-1, the [(v b), 4, 4] poses taking view v's camera frame to view
     (v + s) mod V's: inv(E_{v+s}) E_v. With two views, computed as the reference does
     ([P, inv(P)] with P = inv(E1) E0), which is what its 2-view checkpoints saw."""
-    b, v = extrinsics.shape[:2]
+    b, v = extrinsics.shape[:2]  # noqa: RUF059 (unpacked to name the shape)
     e = extrinsics.detach()
     if v == 2:
         pose = e[:, 1].inverse() @ e[:, 0]

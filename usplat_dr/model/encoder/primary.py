@@ -37,8 +37,8 @@ def config_from_dict(cls, d: dict):
     hints = typing.get_type_hints(cls)
     for name, value in d.items():
         if not _fits(hints[name], value):
-            raise ValueError(f"{cls.__name__}.{name} must be of type {_type_name(hints[name])}, got "
-                             f"{value!r:.80}")
+            raise ValueError(f"{cls.__name__}.{name} must be of type {_type_name(hints[name])}, "
+                             f"got {value!r:.80}")
     return replace(cls(), **d)
 
 
@@ -87,7 +87,7 @@ def check_bounds(cfg, bounds: dict[str, int]) -> None:
                 continue
             if isinstance(v, bool) or not isinstance(v, int):
                 # a config error, like every other (the CLI reports ValueErrors in one line)
-                raise ValueError(f"{name} must hold integers, got {value!r}")  # noqa: TRY004
+                raise ValueError(f"{name} must hold integers, got {value!r}")
             if not 0 <= v <= hi:
                 raise ValueError(f"{name} must be in 0..{hi}, got {v}")
 
