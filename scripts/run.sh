@@ -6,7 +6,7 @@
 #   bash scripts/run.sh test [ARGS]    run the test suite (pytest ARGS)
 #   bash scripts/run.sh lint [ARGS]    the linter, run by CI before the tests (ruff check . ARGS)
 #   bash scripts/run.sh doctor         report versions, libLLVM, backends, GPU
-#   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench_rasterizer.py)
+#   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench/rasterizer.py)
 #   bash scripts/run.sh setup          only install
 #   bash scripts/run.sh gpu-check [D]  on a CUDA machine: the CUDA tests, the rasteriser and
 #                                      UniqueSplat benchmarks on the GPU, a report in
@@ -111,15 +111,15 @@ gpu_check() {
             | grep -v "jit_find_library\|jitc_llvm_init" | tail -n 40 || true
         echo '```'
         echo
-        echo "## Rasteriser on the GPU (train/bench_rasterizer.py --device cuda)"
+        echo "## Rasteriser on the GPU (train/bench/rasterizer.py --device cuda)"
         echo
-        "$PYTHON" train/bench_rasterizer.py --device cuda --sizes 64 256 --dense-max 64 2>&1 \
+        "$PYTHON" train/bench/rasterizer.py --device cuda --sizes 64 256 --dense-max 64 2>&1 \
             | grep -v "jit_find_library\|jitc_llvm_init" || true
         echo
-        echo "## UniqueSplat (c)/(a) on the GPU (train/bench_uniquesplat.py --device cuda)"
+        echo "## UniqueSplat (c)/(a) on the GPU (train/bench/uniquesplat.py --device cuda)"
         echo
         echo '```'
-        "$PYTHON" train/bench_uniquesplat.py --device cuda --processes 1 --repeats 10 --layers \
+        "$PYTHON" train/bench/uniquesplat.py --device cuda --processes 1 --repeats 10 --layers \
             2>&1 | grep -v "jit_find_library\|jitc_llvm_init" || true
         echo '```'
     } | tee "$out/report.md"
@@ -134,7 +134,7 @@ case "$command" in
     test) setup; cd "$ROOT"; exec "$VENV/bin/python" -m pytest "$@" ;;
     lint) setup; cd "$ROOT"; exec "$VENV/bin/ruff" check . "$@" ;;
     doctor) setup; exec "$VENV/bin/usplat" doctor ;;
-    bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench_rasterizer.py "$@" ;;
+    bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench/rasterizer.py "$@" ;;
     gpu-check) cd "$ROOT"; gpu_check "$@" ;;
     *) sed -n '2,17p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

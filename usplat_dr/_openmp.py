@@ -6,7 +6,7 @@ their cores (libgomp's default: 300,000 iterations, milliseconds) before they sl
 rasteriser runs on Dr.Jit's own thread pool, so right after a torch operation its threads
 shared the two cores with spinning torch workers: at 2 threads a 64x64 forward+backward took
 10.4 ms instead of 4.9, and the torch bridge added 6-13 ms over the Dr.Jit entry instead of
-about 1 (BENCHMARKS.md, "OpenMP spinning"; ``train/bench_omp_spin.py``). A spin count of
+about 1 (train/bench/README.md, "OpenMP spinning"; ``train/bench/omp_spin.py``). A spin count of
 30,000 kept torch's own operations as fast (training steps 0.93-0.99x), where
 ``OMP_WAIT_POLICY=PASSIVE`` (no spinning) made a training step 1.7x slower.
 

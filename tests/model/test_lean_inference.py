@@ -1,5 +1,5 @@
 """Inference without autograd takes a leaner path through the depth predictor (heads one view
-at a time, GELUs in place, intermediates released early: issue 18's memory target). It must
+at a time, GELUs in place, intermediates released early: the 2026-11-25 memory target). It must
 compute what the autograd path computes, and ``import usplat_dr.model`` must not load the
 Dr.Jit rasteriser for users of the primary network alone."""
 

@@ -284,7 +284,7 @@ def test_bad_configuration_and_inputs_name_the_argument():
 def test_inference_culling_keeps_the_renders():
     """Culling per target keeps the images of rendering every Gaussian, merging stays close;
     eval mode renders every Gaussian by default (``inference_prune``: pruning does not pay on
-    CPU, train/bench_prune.py); training renders every Gaussian; pruning refuses to run
+    CPU, train/bench/prune.py); training renders every Gaussian; pruning refuses to run
     under autograd."""
     torch.manual_seed(2)
     model = UniqueSplat.from_preset("tiny", variant="full")

@@ -227,11 +227,11 @@ def test_plugin_conventions_and_errors():
 
 
 def test_inverse_rendering_example_raises_held_out_psnr(tmp_path):
-    """train/mitsuba_inverse.py (Mitsuba's loop through usplat_splat), a short run."""
+    """train/examples/mitsuba_inverse.py (Mitsuba's loop through usplat_splat), a short run."""
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).parents[2] / "train" / "mitsuba_inverse.py"
+    path = Path(__file__).parents[2] / "train" / "examples" / "mitsuba_inverse.py"
     spec = importlib.util.spec_from_file_location("mitsuba_inverse", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

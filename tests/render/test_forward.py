@@ -263,7 +263,7 @@ def test_depth_is_weighted_camera_z(device):
 
 def test_scale_invariance(device):
     # render_cuda is scale-invariant: scaling the scene, cameras and near/far by s changes only
-    # depth (by s). 1e-3 and 1e3 are the stress scales of issue 7. Float32 rounding of the
+    # depth (by s). 1e-3 and 1e3 are the stability stress scales. Float32 rounding of the
     # scaled inputs changes results by ~1e-6.
     base = random_scene(150, 24, 24, seed=9)
     out = rasterize(*base.to(device=device).args())

@@ -1,4 +1,4 @@
-"""train/oracle_delta.py's fits: Delta W = 0 reproduces (a) on every layer choice and form,
+"""train/studies/oracle_delta.py's fits: Delta W = 0 reproduces (a) on every layer choice and form,
 and the per-target fit starts exactly at the shared one (the nested comparison)."""
 
 import importlib.util
@@ -11,7 +11,7 @@ from tests.model.test_uniquesplat import scene
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.hypernet.hypernetwork import ConvSpec
 
-SCRIPT = Path(__file__).parents[2] / "train" / "oracle_delta.py"
+SCRIPT = Path(__file__).parents[2] / "train" / "studies" / "oracle_delta.py"
 spec = importlib.util.spec_from_file_location("oracle_delta", SCRIPT)
 oracle = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(oracle)

@@ -58,7 +58,7 @@ PRUNES: dict[str, PruneSettings | None] = {
     "keep50%": PruneSettings(keep_fraction=0.5),
     "keep25%": PruneSettings(keep_fraction=0.25),
 }
-#: The decision rules (BENCHMARKS.md, "Speed against accuracy: `usplat bench`"): a pruning
+#: The decision rules (train/bench/README.md, "Speed against accuracy: `usplat bench`"): a pruning
 #: setting is safe where it costs < 0.05 dB (on by default only if it also saves time, which on
 #: CPU none does: "Pruning that pays"); the demo's preset is the smallest configuration within
 #: 0.3 dB of the best.

@@ -32,7 +32,7 @@ BUDGETS = {
 VARIANTS = {"baseline": "(a) primary network", "agnostic": "(b) + view-agnostic",
             "full": "(c) UniqueSplat"}
 #: The demo's size preset: the smallest within 0.3 dB of the best in `usplat bench`
-#: (BENCHMARKS.md, "Speed against accuracy").
+#: (train/bench/README.md, "Speed against accuracy").
 PRESET = "tiny"
 #: The shipped checkpoints the demo reads (names in checkpoints/manifest.json): the trained
 #: primary network, and per variant the model fine-tuned from it for the same steps (for (a):

@@ -8,8 +8,8 @@ with PNGs: the verdict chart, novel views next to ground truth, depth maps, trai
 worst cases, speed against accuracy, and where the numbers came from).
 
 Budgets: ``full`` (about 8 minutes on a 2-core CPU) and ``quick`` (a minute or two, for CI).
-The multi-seed verdict (fine-tuning seeds x held-out scenes) is ``train/verdict_study.py``; its
-result is in BENCHMARKS.md.
+The multi-seed verdict (fine-tuning seeds x held-out scenes) is
+``train/studies/verdict_study.py``; its result is in train/studies/README.md.
 """
 
 import argparse

@@ -31,12 +31,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prune", action="store_true",
                    help="prune the Gaussians per target view before rendering (exact culling "
                    "+ merging near-duplicates, within 0.05 dB): fewer Gaussians, but on CPU "
-                   "slower at every size measured (BENCHMARKS.md, \"Pruning that pays\"); "
+                   "slower at every size measured (train/bench/README.md, \"Pruning that pays\"); "
                    "off by default")
     p.add_argument("--precision", default="float32", choices=["float32", "bfloat16"],
                    help="the networks' inference precision (bfloat16: torch autocast, faster "
                         "on CPUs with AVX-512-BF16 or AMX; geometry and rendering stay "
-                        "float32; BENCHMARKS.md, \"bfloat16 inference\")")
+                        "float32; train/bench/README.md, \"bfloat16 inference\")")
     p.add_argument("--lpips-vgg", help="torchvision vgg16-397923af.pth (for LPIPS)")
     p.add_argument("--lpips-lin", help="lpips/weights/v0.1/vgg.pth (for LPIPS)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])

@@ -163,9 +163,10 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
                "scenes (the stress splits hold the scenes that qualify), with bootstrap 95% "
                "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
                "variation, so no row here is a verdict; the multi-seed one "
-               "(`train/verdict_study.py`) follows the table, and BENCHMARKS.md (\"View "
-               "conditioning as the paper has it\") has it in full with the oracle per layer "
-               "(`train/oracle_delta.py`)."), "", verdict_table(verdict), "",
+               "(`train/studies/verdict_study.py`) follows the table, and "
+               "train/studies/README.md (\"View conditioning as the paper has it\") has it in "
+               "full with the oracle per layer "
+               "(`train/studies/oracle_delta.py`)."), "", verdict_table(verdict), "",
               "![verdict](verdict.png)", "", *registered_lines(registered),
               "## Per split (PSNR / SSIM / depth AbsRel)", "",
               "| split | scenes | " + " | ".join(_label(v, manifest) for v in summaries) + " |",
@@ -203,8 +204,8 @@ def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: di
               (out / "bench_demo" / "bench.md").read_text().rstrip(), "",
               ("Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; "
                "safe: it costs less than 0.05 dB). Off by default at inference: on CPU it costs "
-               "more time than it saves at every size measured (BENCHMARKS.md, \"Pruning that "
-               "pays\")."), "",
+               "more time than it saves at every size measured (train/bench/README.md, "
+               "\"Pruning that pays\")."), "",
               "| pruning | worst PSNR change | kept | safe |", "|---|---|---|---|"]
     for name, p in sorted(bench["pruning"].items()):
         lines.append(f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | "

@@ -43,7 +43,7 @@ HEADS = ("to_gaussians", "to_disparity")
 #: Layers that can take generated weights: the convolutions of the two heads.
 INJECTABLE = tuple(f"{h}.{i}" for h in HEADS for i in (0, 2))
 
-#: Inference default: no pruning. Pruning pays nowhere on CPU (train/bench_prune.py, BENCHMARKS.md
+#: Inference default: no pruning. Pruning pays nowhere on CPU (train/bench/prune.py, BENCHMARKS.md
 #: "Pruning that pays"): the rasteriser's binning already skips what culling drops (no
 #: (tile, Gaussian) pairs), so on the tiny checkpoint's Gaussians it saves the rasteriser 0-13 %
 #: while the pruning itself costs 0.65-1.6x the render (64x64 to 256x256, one thread). Set
@@ -66,7 +66,8 @@ class UniqueSplatCfg:
     # as the paper has it ("integrated into the convolutional layers of the predictor" that
     # outputs centre, opacity, covariance and colour): ``to_disparity`` (depth, opacity) and
     # ``to_gaussians`` (colour, covariance, offsets). Fewer layers cost less per target
-    # (``train/bench_uniquesplat.py --layers``; BENCHMARKS.md "What view conditioning costs").
+    # (``train/bench/uniquesplat.py --layers``; train/studies/README.md, "What view
+    # conditioning costs").
     target_layers: tuple[str, ...] = INJECTABLE
     specific_layers: tuple[str, ...] = INJECTABLE
     embed_dim: int = 512  # e_a and e_s (paper: 512)
@@ -214,7 +215,7 @@ class UniqueSplat(nn.Module):
         #: numerics (``USPLAT_PORTABLE=0``: the portable pins leave oneDNN without bfloat16
         #: instructions, 14x slower) it takes the paper preset's 256x256 encoder from 3.25 to
         #: 1.82 s at one thread and moved the tiny checkpoint's held-out PSNR by +0.013 dB
-        #: (BENCHMARKS.md, "bfloat16 inference").
+        #: (train/bench/README.md, "bfloat16 inference").
         self.inference_precision = "float32"
         self.agnostic = self.specific = None
         if cfg.variant == "baseline":

@@ -68,8 +68,8 @@ def _value_flags(tensors: list[Tensor], near: Tensor, far: Tensor) -> list[bool]
     On the CPU the checks run in NumPy on the tensors' own memory: a torch reduction over a
     few hundred thousand values is split across torch's OpenMP threads, and on a loaded
     2-core machine waiting for the second core cost about 21 ms per call; NumPy takes
-    0.1-0.4 ms (BENCHMARKS.md, "The torch bridge"). On a GPU the checks stay on the device with
-    one host read for all of them.
+    0.1-0.4 ms (train/bench/README.md, "The torch bridge"). On a GPU the checks stay on the
+    device with one host read for all of them.
     """
     if near.device.type == "cpu":
         arrays = [t.detach().numpy() for t in tensors]

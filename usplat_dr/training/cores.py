@@ -8,7 +8,7 @@ thread pool, and in the Python between operations. Each torch operation large en
 in parallel then waits for its second thread: an element-wise product of 49,000 floats took
 1.5-4.5 ms right after a rasteriser call instead of 0.08 ms. With the cores kept awake, a
 two-thread step of the tiny preset took 0.86-1.17x as long in 13 alternated rounds (median
-0.92x; BENCHMARKS.md, "Halting vCPUs").
+0.92x; train/bench/README.md, "Halting vCPUs").
 
 ``CoreKeeper`` starts one process per core that spins at the lowest scheduling priority
 (``SCHED_IDLE``): it runs only when nothing else wants that core, and the kernel preempts it at

@@ -107,8 +107,8 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     path tracing: ``usplat_dr.data.synth.scenes``); the same seed gives the same geometry and
     cameras in both. ``spp``: Mitsuba samples per pixel (None: ``DEFAULT_SPP`` of the
     appearance: path tracing's noise on shiny surfaces needs 256 to stay below what changes
-    with the viewpoint; BENCHMARKS.md, "The view-dependent appearance, version 2"). Returns
-    the split summary (split -> number of scenes in it).
+    with the viewpoint; train/studies/README.md, "The view-dependent appearance, version
+    2"). Returns the split summary (split -> number of scenes in it).
 
     Examples:
         >>> import tempfile

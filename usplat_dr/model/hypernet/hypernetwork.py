@@ -56,7 +56,7 @@ class LayerDelta:
     """Per-target change of one layer, for B*N targets: ``u`` [BN, O, r] and ``v``
     [BN, r, I, k, k] (rank-r form, ``v`` already scaled by 1/sqrt(fan_in)) or ``full``
     [BN, O, I, k, k]; ``bias`` [BN, O], or [BN, V, O] in the rank-r form: a bias change per
-    (target, context view) pair (``train/oracle_delta.py``'s probe; H_s never makes one)."""
+    (target, context view) pair (``train/studies/oracle_delta.py``'s probe; H_s never makes one)."""
 
     bias: Tensor
     u: Tensor | None = None

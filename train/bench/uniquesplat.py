@@ -14,7 +14,7 @@ Ratios are against (a) measured in the same run. The paper (A6000):
 four convolutions of both heads; ``--layers`` adds (c) with Delta W on fewer layers and with
 a full-rank Delta W, the cost of each choice.
 
-    python train/bench_uniquesplat.py [--processes 2] [--repeats 5] [--setting paper256 tiny64]
+    python train/bench/uniquesplat.py [--processes 2] [--repeats 5] [--setting paper256 tiny64]
         [--layers] [--threads 1] [--device cpu|cuda]
 """
 

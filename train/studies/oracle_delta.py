@@ -26,7 +26,7 @@ convergence check). ``--probe pair-bias`` replaces Delta W by a bias change of
 per target: whether a Delta W per (target, context view) pair would have room. At step 0
 (Delta W = 0) each target's PSNR is (a)'s, which the script checks against a plain forward.
 
-    python train/oracle_delta.py --checkpoint checkpoints/tiny_baseline.pt \
+    python train/studies/oracle_delta.py --checkpoint checkpoints/tiny_baseline.pt \
         --data outputs/big/test2000 --split standard --scenes 30 --steps 100 \
         --layer all --rank 4 --out outputs/oracle/all_r4
 

@@ -5,7 +5,7 @@ unfused, per-parameter float64 gradient norms, then torch's clip_grad_norm_) in 
 process, interleaved step by step.
 Wall and process CPU time; medians over steps.
 
-    python train/bench_training.py --data outputs/big/train480 --threads 1 --steps 20
+    python train/bench/training.py --data outputs/big/train480 --threads 1 --steps 20
 
 ``--clip N``: instead, the gradient norms and clipping alone, N times each on one step's
 gradients (restored before every call), alternating the two calls the trainer made before

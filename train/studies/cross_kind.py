@@ -2,7 +2,7 @@
 trained on that kind (the paper's cross-dataset table in miniature: RealEstate10K -> indoor,
 ACID -> outdoor, DTU -> objects).
 
-    python train/cross_kind.py --eval-data outputs/big/test2000 --out outputs/cross_kind \\
+    python train/studies/cross_kind.py --eval-data outputs/big/test2000 --out outputs/cross_kind \\
         --model indoor=outputs/kind_indoor/checkpoints/last.ckpt \\
         --model object=outputs/kind_object/checkpoints/last.ckpt \\
         --model outdoor=outputs/kind_outdoor/checkpoints/last.ckpt [--source indoor]

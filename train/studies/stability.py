@@ -2,8 +2,8 @@
 recording loss, the gradient norms of the network's parts (before clipping) and skipped
 non-finite steps; writes a chart and a JSON summary.
 
-    python train/stability.py                      # 2100 steps (3x the demo), ~15 min on 2 cores
-    python train/stability.py --steps 6000 --preset small --out outputs/stability_small
+    python train/studies/stability.py        # 2100 steps (3x the demo), ~15 min on 2 cores
+    python train/studies/stability.py --steps 6000 --preset small --out outputs/stability_small
 
 Needs the demo's data (``usplat demo`` or ``usplat bench`` makes it in outputs/demo/data).
 A killed run resumes where it stopped when started again with the same arguments.

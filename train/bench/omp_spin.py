@@ -6,12 +6,12 @@ spinning on their core (300,000 iterations by default, milliseconds) before they
 runs its kernels on its own thread pool, so right after a torch operation its threads share
 the cores with spinning torch workers. The setting is read once per process, when libgomp
 loads, so each value runs in its own processes, alternated round by round (a busy machine
-hits all alike): ``train/bench_training.py`` (the current trainer, tiny preset, 64x64,
-2 context + 4 targets) and ``train/bench_rasterizer.py`` (torch entry, pixel-aligned scenes).
+hits all alike): ``train/bench/training.py`` (the current trainer, tiny preset, 64x64,
+2 context + 4 targets) and ``train/bench/rasterizer.py`` (torch entry, pixel-aligned scenes).
 Prints medians over rounds and ratios against the first value (``default``: the variable
 unset, libgomp's own default, as before this script).
 
-    python train/bench_omp_spin.py --data outputs/big/train480 --rounds 3
+    python train/bench/omp_spin.py --data outputs/big/train480 --rounds 3
 """
 
 import argparse
@@ -67,9 +67,9 @@ def main() -> int:
     samples: dict = {v: {} for v in args.values}
     for r in range(args.rounds):
         for v in args.values:
-            got = parse_training(run("bench_training.py", [
+            got = parse_training(run("training.py", [
                 "--data", args.data, "--threads", str(args.threads), "--steps", "10"], v))
-            got |= parse_raster(run("bench_rasterizer.py", [
+            got |= parse_raster(run("rasterizer.py", [
                 "--sizes", "64", "256", "--runs", "9", "--threads", str(args.threads)], v))
             for k, x in got.items():
                 samples[v].setdefault(k, []).append(x)

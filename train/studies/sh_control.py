@@ -4,11 +4,11 @@ the same with degree 0 (one colour per Gaussian: ``PrimaryNetworkCfg.colour_sh_d
 from the same checkpoint for the same steps and seeds; PSNR on the held-out set's shiny and
 matte pixels, paired by scene (``usplat_dr.evaluation.verdict``).
 
-    python train/sh_control.py --init checkpoints/tiny_baseline.pt \\
+    python train/studies/sh_control.py --init checkpoints/tiny_baseline.pt \\
         --data outputs/big/vd_train120 --eval-data outputs/big/vd_test2000 \\
         --steps 1000 --seeds 0 --out outputs/sh_control
 
-Both arms run at once, one thread each, through ``train/verdict_study.py`` (resumable:
+Both arms run at once, one thread each, through ``train/studies/verdict_study.py`` (resumable:
 ``<out>/sh2`` and ``<out>/sh0``); writes ``<out>/sh_control.md`` and ``.json`` (degree 0 minus
 degree 2 per split and metric, with both intervals). On a view-dependent set degree 0 should
 lose on shiny pixels and not on matte ones.

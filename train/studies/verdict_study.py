@@ -3,7 +3,7 @@ fine-tune (a) on (the control), (b) and (c) for the same steps with each seed, e
 of them on the same held-out scenes, and compare paired per-scene differences with bootstrap
 95% intervals over scenes and seeds (``usplat_dr.evaluation.verdict``).
 
-    python train/verdict_study.py --init checkpoints/tiny_baseline.pt \
+    python train/studies/verdict_study.py --init checkpoints/tiny_baseline.pt \
         --data outputs/big/train480 --eval-data outputs/big/test2000 \
         --seeds 0 1 2 --steps 1000 --out outputs/verdict --jobs 2
 
@@ -122,7 +122,7 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one thread each)")
     p.add_argument("--wall-ratio", type=float, default=None,
                    help="also train (a) for this many times the steps: (a) at (c)'s wall time "
-                        "(the ratio of their seconds per step, train/bench_training.py)")
+                        "(the ratio of their seconds per step, train/bench/training.py)")
     p.add_argument("--also-eval", nargs="+", default=[], metavar="DATA",
                    help="more held-out sets: every run is evaluated on each as well (in "
                         "<run>/eval_<folder name>) and each gets its own verdict_<folder "
@@ -213,7 +213,7 @@ def register(args, out: Path) -> None:
         if a == "--register" or (i and argv[i - 1] == "--register") or a.startswith("--register="):
             continue
         kept.append(a)
-    command = "python train/verdict_study.py " + shlex.join(kept)
+    command = "python train/studies/verdict_study.py " + shlex.join(kept)
     rows = [{"set": name, **{k: r[k] for k in ("arm", "mean", "low", "high", "seed_low",
                                                  "seed_high", "seeds", "scenes", "label")},
              "init": args.init, "command": command}
@@ -272,7 +272,7 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
     write_json(out / f"verdict{suffix}.json", {"args": vars(args), "held_out": where,
                                                "rows": as_dicts(rows),
                                                "equal_wall_time_rows": as_dicts(wall_rows)})
-    if rows:  # none when only (a) ran (train/sh_control.py compares two such studies)
+    if rows:  # none when only (a) ran (train/studies/sh_control.py compares two such studies)
         chart(rows, out / f"verdict{suffix}.png")
     # the pre-registered rule's label per split, (c) - (a) on PSNR (checkpoints/verdict.json
     # holds these for the shipped protocol; the demo prints them)

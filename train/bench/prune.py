@@ -21,7 +21,7 @@ rasteriser's image, not ground truth: what pruning changes); kept: mean fraction
 rendered. Net saving = none's ms/view - the setting's. Prints a Markdown table and writes
 ``--out`` (JSON).
 
-    python train/bench_prune.py --data outputs/demo/data --sizes 64 128 256 --threads 1
+    python train/bench/prune.py --data outputs/demo/data --sizes 64 128 256 --threads 1
 """
 
 import argparse
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import usplat_dr  # noqa: F401  (libLLVM before drjit)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def settings_grid():
@@ -194,7 +194,7 @@ def main() -> None:
         print(f"size {size}: done", flush=True)
     text = "\n".join(lines)
     print(text)
-    meta = {"command": "python train/bench_prune.py " + " ".join(
+    meta = {"command": "python train/bench/prune.py " + " ".join(
         f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
         for k, v in vars(args).items() if v is not None),
             "machine": platform.processor() or platform.machine(),

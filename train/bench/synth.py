@@ -4,7 +4,7 @@ Baseline, measured in the same run and interleaved: Mitsuba rendering the same s
 images alone (no depth tracing, materials, PNG encoding, splits or chunk writing), so the ratio
 is the cost of everything around the renderer. Prints wall and process CPU time.
 
-    python train/bench_synth.py [--scenes 6] [--target [--jobs 2]]
+    python train/bench/synth.py [--scenes 6] [--target [--jobs 2]]
 """
 
 import argparse

@@ -13,7 +13,7 @@ the previous code in the same run).
 The official code's numbers on another 2-core machine (docs/mvsplat_notes.md sec. 2) are printed
 for reference: 4.9 s, 1.7 GiB.
 
-    python train/bench_encoder.py [--rounds 2] [--repeats 3] [--size 256] [--previous DIR]
+    python train/bench/encoder.py [--rounds 2] [--repeats 3] [--size 256] [--previous DIR]
 """
 
 import argparse

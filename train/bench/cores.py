@@ -3,10 +3,10 @@ train`` does by default when its threads cover every core) against without: each
 its own processes, alternated round by round (a busy host slows both alike), the spinners
 running for the whole process as in a training run. Per process: the median of ``--steps``
 timed steps (after 3 warm-up steps) of the tiny preset at 64x64, 2 context + 4 targets, the
-shipped recipe, phase by phase as ``bench_training.py`` times them; then the median over rounds.
+shipped recipe, phase by phase as ``training.py`` times them; then the median over rounds.
 Wall and process CPU time (the spinners' CPU time is not counted: it is time the job left idle).
 
-    python train/bench_cores.py --data outputs/big/train480 --threads 2 --rounds 4
+    python train/bench/cores.py --data outputs/big/train480 --threads 2 --rounds 4
 """
 
 import argparse
@@ -25,7 +25,7 @@ def one_process(args) -> dict:
     """This process's medians (ms) per variant, with or without the keeper."""
     import logging
 
-    from bench_training import make_trainer, timed_step
+    from training import make_trainer, timed_step
 
     from usplat_dr.training.cores import CoreKeeper
 

@@ -1,7 +1,7 @@
 """Generalisation: held-out PSNR and depth AbsRel against the number of distinct training
 scenes, at a fixed step budget (the shipped recipe, tiny (a), one thread per run).
 
-    python train/generalisation.py --data outputs/big/train480 \
+    python train/studies/generalisation.py --data outputs/big/train480 \
         --eval-data outputs/big/test2000 --scenes 24 96 480 --steps 1500 --out outputs/gen
 
 Subsets are the first N scenes of ``--data`` (kinds round-robin), written as datasets of their

@@ -7,8 +7,8 @@ inflated sizes, as a Mitsuba ``ellipsoids`` shape; ``mi.ad.Adam`` then optimises
 Mitsuba loop (``mi.render`` -> loss -> ``dr.backward`` -> ``opt.step()`` ->
 ``params.update(opt)``). Prints held-out PSNR before and after and writes renders.
 
-    python train/mitsuba_inverse.py                       # ~1 minute on 2 CPU cores
-    python train/mitsuba_inverse.py --kind object --iterations 400 --size 64
+    python train/examples/mitsuba_inverse.py                       # ~1 minute on 2 CPU cores
+    python train/examples/mitsuba_inverse.py --kind object --iterations 400 --size 64
 """
 
 import argparse

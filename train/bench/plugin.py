@@ -7,8 +7,8 @@ sRGB-to-linear conversion), and the torch API ``rasterize``. Forward only, and f
 backward (``dr.backward`` through ``mi.render`` against the torch API's ``backward``). Prints
 median wall and process CPU time and the ratio to the baseline measured in the same run.
 
-    python train/bench_plugin.py                   # 20k Gaussians, 256x256, 7 rounds
-    python train/bench_plugin.py --gaussians 100000 --size 512
+    python train/bench/plugin.py                   # 20k Gaussians, 256x256, 7 rounds
+    python train/bench/plugin.py --gaussians 100000 --size 512
 """
 
 import argparse

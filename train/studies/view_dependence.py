@@ -4,7 +4,7 @@ with the true depths, PSNR of warped against true on the co-visible pixels, per 
 floor; glossy and metallic ones fall below it by as much as their appearance changes with the
 viewpoint.
 
-    python train/view_dependence.py --data outputs/big/vd_test2000 --split standard \
+    python train/studies/view_dependence.py --data outputs/big/vd_test2000 --split standard \
         --out outputs/meter/vd_test2000 [--noise-floor 12]
 
 Writes ``<out>/meter.json`` (per scene and per class) and ``<out>/images/<scene>.png`` (target,
