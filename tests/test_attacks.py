@@ -2,7 +2,7 @@
 to an interpreter, take unbounded memory or time, or stop a run that should skip a record.
 It grows from the fuzz suite (``tests/test_fuzz.py``: its guards and fakes) and counts its
 outcomes per class; the last test prints them (``pytest tests/test_attacks.py -q -s``) and
-README's "Reliability" section records them. Process faults (SIGKILL, two runs on one
+docs/reliability.md records them. Process faults (SIGKILL, two runs on one
 folder, a full disk) are in ``tests/training/test_run_safety.py``.
 
 Each input must end in a documented way: an error naming the file or value (``ValueError``

@@ -14,7 +14,7 @@ cameras, absurd sizes) must end in one of these ways:
 
 An exception of any other kind (a crash) fails the test, and so does an input that takes
 longer than ``HANG_S`` seconds (a hang). The outcomes are counted per reader and printed
-by the last test (``pytest tests/test_fuzz.py -q``); README's "Reliability" section records
+by the last test (``pytest tests/test_fuzz.py -q``); docs/reliability.md records
 them."""
 
 import collections
