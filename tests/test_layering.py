@@ -1,6 +1,8 @@
 """The architecture, checked: folders are layers and imports only go down them (function-local
 imports count), no import cycle, one module per ``usplat`` command, at most 8 modules at the top
-of ``usplat_dr/``, every package in the wheel, and what importing a layer loads."""
+of ``usplat_dr/``, every package in the wheel, what importing a layer loads, and that the
+scripts in ``train/`` and the plugins in ``plugins/`` use only what a user of the library can
+(``SCRIPT_RULES``)."""
 
 import ast
 import subprocess
@@ -158,3 +160,149 @@ def test_importing_a_layer_loads_only_what_it_needs(module, absent):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, cwd=ROOT).stdout.strip()
     assert out == "[]", f"import {module} loaded {out}"
+
+
+# ---- Scripts and plugins: only what a user of the library can use ----
+
+SCRIPT_RULES = """\
+Files in train/ and plugins/ (every import, function-local ones included):
+- no usplat_dr.jobs: the jobs are the commands' internals; a script runs a command through
+  usplat_dr.cli (main([...]), COMMANDS), the one way in, and uses the library below jobs;
+- no private name from usplat_dr: no module or name starting with "_" imported, and none read as
+  an attribute of an imported usplat_dr module (a script uses what users can);
+- no sys.path edit (the library is installed; the tests' helpers are not a script's);
+- no sibling script imported by bare name (it works only from that folder's sys.path entry);
+  in train/ no relative import either (train/ is not a package). Code two scripts share is
+  the library's, or one runs the other as a subprocess."""
+
+#: Known exceptions: {file: {what it imports: the move that removes it}}. A listed exception
+#: that no longer occurs fails too, so the list shrinks with the moves.
+PENDING = {
+    "train/studies/stability.py": {
+        "usplat_dr.jobs.budgets": "the demo's run recipe (BUDGETS, training_config) is the "
+                                  "demo's own; the study would need it in the library",
+        "usplat_dr.jobs.report": "curves, stability -> training/run_log.py (research_wing.md, "
+                                 "'Library moves'; with the trainer's RunLog)",
+    },
+}
+
+
+def script_files() -> list[Path]:
+    """The .py files of train/ and plugins/; a symbolic link is another name for a file that
+    is checked under its own."""
+    return sorted(path for base in (ROOT / "train", ROOT / "plugins")
+                  for path in base.rglob("*.py")
+                  if "__pycache__" not in path.parts and not path.is_symlink())
+
+
+#: Public API that starts with "_": a NamedTuple's methods and fields (``SceneInputs``).
+NAMEDTUPLE_API = {"_replace", "_fields", "_asdict", "_make", "_field_defaults"}
+JOBS = "a jobs internal (a script runs a command through usplat_dr.cli)"
+
+
+def is_private(name: str) -> bool:
+    return (name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+            and name not in NAMEDTUPLE_API)
+
+
+def script_problems(path: Path, text: str | None = None) -> list[tuple[int, str, str]]:
+    """``(line, what, why)`` for each break of ``SCRIPT_RULES`` in ``path`` (its ``text`` when
+    given): ``what`` is the module or name at fault."""
+    tree = ast.parse(path.read_text() if text is None else text)
+    siblings = ({p.stem for p in path.parent.glob("*.py")}
+                | {p.parent.name for p in path.parent.glob("*/__init__.py")})
+    in_train = ROOT / "train" in path.parents
+    found = []
+    modules = {}  # local name -> usplat_dr module it is bound to (for attribute reads)
+
+    def check_module(line: int, module: str) -> None:
+        parts = module.split(".")
+        if parts[0] == "usplat_dr":
+            if parts[1:2] == ["jobs"]:
+                found.append((line, module, JOBS))
+            if any(is_private(x) for x in parts):
+                found.append((line, module, "a private module"))
+        elif parts[0] in siblings:
+            found.append((line, module, "a sibling script by bare name"))
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                check_module(node.lineno, alias.name)
+                if alias.name.startswith("usplat_dr"):
+                    local = alias.asname or alias.name.split(".")[0]
+                    modules[local] = alias.name if alias.asname else "usplat_dr"
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                if in_train:
+                    found.append((node.lineno, "." * node.level + (node.module or ""),
+                                  "a relative import (train/ is not a package)"))
+                continue
+            check_module(node.lineno, node.module)
+            for alias in node.names:
+                full = f"{node.module}.{alias.name}"
+                if node.module == "sys" and alias.name == "path":
+                    found.append((node.lineno, "sys.path", "a sys.path edit"))
+                if node.module.split(".")[0] != "usplat_dr":
+                    continue
+                if is_private(alias.name):
+                    found.append((node.lineno, full, "a private name"))
+                if full == "usplat_dr.jobs":
+                    found.append((node.lineno, full, JOBS))
+                modules[alias.asname or alias.name] = full
+        elif (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+              and node.value.id == "sys" and node.attr == "path"):
+            found.append((node.lineno, "sys.path", "a sys.path edit"))
+    for node in ast.walk(tree):  # attribute reads of imported usplat_dr modules: x._private
+        chain = []
+        while isinstance(node, ast.Attribute):
+            chain.append(node.attr)
+            node = node.value
+        if isinstance(node, ast.Name) and node.id in modules and chain:
+            private = [a for a in chain if is_private(a)]
+            if private:
+                found.append((node.lineno, f"{modules[node.id]}...{private[0]}",
+                              "a private name"))
+    return sorted(set(found))
+
+
+def test_scripts_use_only_the_public_library():
+    problems, pending = [], set()
+    for path in script_files():
+        rel = path.relative_to(ROOT).as_posix()
+        for line, what, why in script_problems(path):
+            if what in PENDING.get(rel, {}):
+                pending.add((rel, what))
+            else:
+                problems.append(f"{rel}:{line}: {what}: {why}")
+    assert not problems, SCRIPT_RULES + "\nbroken by:\n" + "\n".join(problems)
+    stale = [f"{f}: {w}" for f, ws in PENDING.items() for w in ws if (f, w) not in pending]
+    assert not stale, "PENDING lists exceptions that no longer occur: " + ", ".join(stale)
+
+
+@pytest.mark.parametrize("code, what", [
+    ("from usplat_dr.jobs.bench import PRUNES", "usplat_dr.jobs.bench"),
+    ("def f():\n    import usplat_dr.jobs.report", "usplat_dr.jobs.report"),
+    ("from usplat_dr import jobs", "usplat_dr.jobs"),
+    ("def f():\n    from usplat_dr.render.bridge import _value_flags",
+     "usplat_dr.render.bridge._value_flags"),
+    ("from usplat_dr import _llvm", "usplat_dr._llvm"),
+    ("import usplat_dr._openmp", "usplat_dr._openmp"),
+    ("from usplat_dr.render import bridge\nbridge._value_flags([], 1, 2)",
+     "usplat_dr.render.bridge..._value_flags"),
+    ("import usplat_dr.render.bridge\nusplat_dr.render.bridge._wrapped",
+     "usplat_dr..._wrapped"),
+    ("import sys\nsys.path.insert(0, 'tests')", "sys.path"),
+    ("def main():\n    import sys\n    sys.path.append('x')", "sys.path"),
+    ("def main():\n    from training import make_trainer", "training"),
+    ("import rasterizer", "rasterizer"),
+    ("from . import training", "."),
+])
+def test_script_rules_catch(code, what):
+    """Each rule on a script in train/bench/ that breaks it (checked as text: no file is
+    written); the same script without the line passes."""
+    path = ROOT / "train" / "bench" / "example.py"
+    assert what in [w for _, w, _ in script_problems(path, code)], script_problems(path, code)
+    fine = ("import usplat_dr\nfrom usplat_dr.cli import main\n"
+            "from usplat_dr.data.types import SceneInputs\nSceneInputs._fields")
+    assert script_problems(path, fine) == []

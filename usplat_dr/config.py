@@ -245,9 +245,9 @@ def where_set(origins: dict[str, str], key: str) -> str:
 
 def typed_value(tp, value, key: str, origins: dict[str, str] | None = None):
     """``value`` checked against the annotation ``tp`` (int, float, bool, str, None, dict,
-    a tuple of them, a dataclass, or a union of them): ints are accepted for floats, YAML
-    lists for tuples; anything else is a ``ConfigError`` naming the key, the expected type
-    and the value's origin.
+    a tuple of them, a dataclass, a union of them, or a union of named dataclasses:
+    ``load_named``): ints are accepted for floats, YAML lists for tuples; anything else is a
+    ``ConfigError`` naming the key, the expected type and the value's origin.
 
     Examples:
         >>> typed_value(tuple[int, int], [32, 48], "dataset.image_shape")
@@ -257,6 +257,8 @@ def typed_value(tp, value, key: str, origins: dict[str, str] | None = None):
     if dataclasses.is_dataclass(tp):
         return load_typed(tp, value, key, origins)
     options = typing.get_args(tp) if isinstance(tp, types.UnionType) else (tp,)
+    if len(options) > 1 and all(dataclasses.is_dataclass(o) for o in options):
+        return load_named(options, value, key, origins)
     for option in options:
         if option is type(None) and value is None:
             return None
@@ -286,10 +288,47 @@ def typed_value(tp, value, key: str, origins: dict[str, str] | None = None):
                       f"(set in {where_set(origins, key)})")
 
 
+def load_named(options: tuple, data, section: str, origins: dict[str, str] | None = None):
+    """One of the dataclasses ``options``, each with a ``name`` field whose default names it
+    (pixelSplat's encoder and view-sampler configs), chosen by the mapping ``data``'s
+    ``name`` (default: the first option's) and loaded from its other keys (``load_typed``).
+
+    Examples:
+        >>> @dataclasses.dataclass(frozen=True)
+        ... class Bounded:
+        ...     name: str = "bounded"
+        ...     views: int = 2
+        >>> @dataclasses.dataclass(frozen=True)
+        ... class All:
+        ...     name: str = "all"
+        >>> load_named((Bounded, All), {"views": 3}, "sampler")
+        Bounded(name='bounded', views=3)
+        >>> load_named((Bounded, All), {"name": "some"}, "sampler")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        usplat_dr.config.ConfigError: sampler.name='some' must be one of ['all', 'bounded'] ...
+    """
+    origins = origins or {}
+    by_name = {next(f.default for f in dataclasses.fields(o) if f.name == "name"): o
+               for o in options}
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ConfigError(f"{section}={data!r} must be a mapping (set in "
+                          f"{where_set(origins, section)})")
+    data = dict(data)
+    name = data.pop("name", next(iter(by_name)))
+    if name not in by_name:
+        raise ConfigError(f"{section}.name={name!r} must be one of {sorted(by_name)} (set in "
+                          f"{where_set(origins, f'{section}.name')})")
+    return load_typed(by_name[name], data, section, origins)
+
+
 def load_typed(cls, data, section: str = "", origins: dict[str, str] | None = None):
     """The dataclass ``cls`` from the mapping ``data`` (a config section): missing keys keep
     the dataclass's defaults, unknown keys and values of the wrong type are a ``ConfigError``
-    naming the key and the file or override that set it.
+    naming the key and the file or override that set it. A dataclass with a ``checked(section,
+    origins)`` method gets it called on the result: its checks across fields and of ranges
+    (a ``ConfigError`` naming the key and where it was set), and its normal form.
 
     Examples:
         >>> @dataclasses.dataclass(frozen=True)
@@ -323,7 +362,9 @@ def load_typed(cls, data, section: str = "", origins: dict[str, str] | None = No
     if missing:
         raise ConfigError(f"{section or 'the configuration'} needs {missing} (set in "
                           f"{where_set(origins, section)})")
-    return cls(**{k: typed_value(hints[k], v, prefix + k, origins) for k, v in data.items()})
+    loaded = cls(**{k: typed_value(hints[k], v, prefix + k, origins) for k, v in data.items()})
+    checked = getattr(loaded, "checked", None)
+    return checked(section, origins) if checked is not None else loaded
 
 
 def check_keys(section: dict, known: set[str], where: str,

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from usplat_dr.jobs.budgets import SHIPPED
+from usplat_dr.training.checkpoints import SHIPPED
 
 ROOT = Path(__file__).parents[2]
 
@@ -127,3 +127,72 @@ def test_registered_verdict_lines():
            "| 3 x 60 | **refutes** |" in text
     assert "| cross-kind | | | | | | not run: no (a) trained on one kind yet |" in text
     assert "No multi-seed verdict" in registered_lines(None)[0]
+
+
+def demo_results(out: Path, stable: dict):
+    """A ``DemoResults`` of made-up numbers, with the files ``write_report`` reads."""
+    from usplat_dr.evaluation.verdict import Comparison
+    from usplat_dr.jobs.budgets import BASE, BUDGETS
+    from usplat_dr.jobs.report import DemoResults
+
+    (out / "bench_demo").mkdir(parents=True)
+    (out / "bench_demo" / "bench.md").write_text("| the demo's bench |\n")
+    for variant in ("baseline", "full"):
+        renders = out / f"eval_shipped_{variant}" / "renders" / "standard"
+        renders.mkdir(parents=True)
+        for scene in ("s2", "s0", "s1"):
+            (renders / f"{scene}.png").write_bytes(b"")
+
+    def split(psnr):
+        return {"psnr": psnr, "ssim": 0.5, "abs_rel": 0.1, "scenes": 3}
+
+    summaries = {v: {"parameters": 1.7e6, "time_per_scene_s": 0.12, "peak_memory_gib": 0.5,
+                     "splits": {"standard": split(20.0 + i), "wide": split(18.0)}}
+                 for i, v in enumerate(["base", *SHIPPED])}
+    manifest = {n: {"name": n, "steps": 100, "sha256": "0123456789abcdef0123", "data": "synth"}
+                for n in (BASE, *SHIPPED.values())}
+    return DemoResults(
+        out=out, budget=BUDGETS["quick"], budget_name="quick", summaries=summaries,
+        timings={"total": 99.6}, worst={"full": {"wide": out / "w.png", "wide_psnr": 14.25}},
+        bench={"pruning": {"cull": {"worst_psnr_change_db": -0.001, "kept_fraction": 0.8,
+                                    "safe": True}}},
+        stable=stable, verdict=[Comparison("standard", "psnr", "full", 0.1, -0.1, 0.3, 3, 1,
+                                           0.67)],
+        tuned={"full": summaries["full"]}, provenance={"drjit": "1.0", "data": {"d": "abc"}},
+        manifest=manifest)
+
+
+def test_write_report_writes_a_section_each(tmp_path):
+    # the report of made-up results, its training sections from a metrics.csv written by the
+    # run log (the format's one writer and reader), without the slow demo
+    from usplat_dr.jobs.report import curves, stability, write_report
+    from usplat_dr.training.run_log import RunLog
+
+    run = tmp_path / "train_full"
+    fields = ["step", "loss", "psnr", "grad_norm", "grad_specific", "skipped"]
+    with RunLog(run, fields, 0, 8, progress=False) as log:
+        for step in range(1, 9):
+            log.log(step, {"loss": 1 / step, "psnr": 10 + step, "grad_norm": 0.5,
+                           "grad_specific": 0.01 * step}, skipped=int(step > 4))
+    stable = {"full": stability(run)}
+    assert stable["full"]["steps"] == 8 and stable["full"]["skipped"] == 1
+    assert stable["full"]["parts"]["grad_specific"]["max"] == 0.08
+    assert curves({"full": run}, tmp_path / "training_curves.png").stat().st_size > 0
+
+    text = write_report(demo_results(tmp_path / "demo", stable)).read_text()
+    headings = [line for line in text.splitlines() if line.startswith("#")]
+    assert headings == [
+        "# usplat-dr demo report",
+        "## The shipped checkpoints on fresh scenes (standard split)",
+        "## Verdict on view conditioning (these scenes, the shipped seed)",
+        "## Per split (PSNR / SSIM / depth AbsRel)", "### Worst cases",
+        "## Fine-tuning briefly from the shipped (a)", "## Speed against accuracy",
+        "## Novel views", "## Where these numbers came from", "## Wall time"]
+    assert text.endswith("|---|---|\n| total | 100 |\n")  # one final newline
+    assert "\n\n\n" not in text  # sections one blank line apart
+    assert "| (c) UniqueSplat | view-specific H_s | 0.045 | 0.08 |" in text
+    assert "| wide | 3 | 18.00 / 0.500 / 0.100 |" in text
+    assert "(c) UniqueSplat, wide: w (14.25 dB)\n\n![wide](w.png)" in text
+    assert "(a) primary network, s1:\n\n![s1](eval_shipped_baseline/renders/standard/s1.png)" \
+        in text and "s2.png" not in text  # the first two renders
+    assert "No multi-seed verdict is shipped" in text and "Full `usplat bench`" not in text

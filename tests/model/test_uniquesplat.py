@@ -46,7 +46,7 @@ def test_zero_init_equals_the_loaded_primary_network(net, weights):
     args = scene()
     ckpt = {"state_dict": {"encoder." + k: v for k, v in weights.items()}}  # Lightning-style
     with torch.no_grad():
-        ref = net(*args[:5])
+        ref = net(args.images, args.intrinsics, args.extrinsics, args.near, args.far)
         outs = {}
         for variant in ("baseline", "agnostic", "full"):
             model = UniqueSplat.from_preset("paper", variant=variant).load_mvsplat(ckpt).eval()
@@ -132,10 +132,10 @@ def test_per_target_specialisation_and_gradients_reach_every_part():
     assert not unused, unused
 
     model.eval()
-    images, k, e, near, far, tk, te, tn, tf = args
+    te = args.target_extrinsics
     te2 = torch.cat([te[:, :2], te[:, :1]], 1)  # targets 0 and 2 are the same camera
     with torch.no_grad():
-        out = model(images, k, e, near, far, tk, te2, tn, tf, render=False)
+        out = model(*args._replace(target_extrinsics=te2), render=False)
     g0, g1, g2 = (out.target(0, i) for i in range(3))
     for name in FIELDS:
         # identical cameras: the same arithmetic on the same inputs in one batch
@@ -182,7 +182,8 @@ def test_each_target_renders_its_own_gaussians(device):
     with torch.no_grad():
         out = model(*args, prune=None)  # every Gaussian (the inference default merges some)
     assert out.color.shape == (1, 2, 3, 64, 64) and out.depth.shape == (1, 2, 64, 64)
-    _, _, _, _, _, tk, te, tn, tf = args
+    tk, te = args.target_intrinsics, args.target_extrinsics
+    tn, tf = args.target_near, args.target_far
     for i in range(2):
         g = out.target(0, i)
         r = rasterize(te[:, i], tk[:, i], tn[:, i], tf[:, i], (64, 64),
@@ -274,7 +275,9 @@ def test_bad_configuration_and_inputs_name_the_argument():
     cfg = UniqueSplatCfg.from_dict({"primary": {"d_feature": 64}, "phi_channels": [8, 8, 8, 8]})
     assert cfg.primary.d_feature == 64 and cfg.phi_channels == (8, 8, 8, 8)
     model = UniqueSplat.from_preset("tiny", variant="baseline")
-    _images, _k, _e, _near, _far, tk, te, tn, tf = scene(n=2)
+    args = scene(n=2)
+    tk, te = args.target_intrinsics, args.target_extrinsics
+    tn, tf = args.target_near, args.target_far
     with pytest.raises(ValueError, match="target_extrinsics must have shape"):
         model.check_targets(1, tk, te[:, :, :3], tn, tf)
     with pytest.raises(ValueError, match="target_near must have shape"):
@@ -290,7 +293,7 @@ def test_inference_culling_keeps_the_renders():
     model = UniqueSplat.from_preset("tiny", variant="full")
     args = scene(n=3)
     # targets turned away from the contexts' content so that culling has work to do
-    args[6][:, 2, :3, :3] = torch.tensor([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    args.target_extrinsics[:, 2, :3, :3] = torch.tensor([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
     model.eval()
     with torch.no_grad():
         culled = model(*args, prune=PruneSettings())

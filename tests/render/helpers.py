@@ -2,8 +2,8 @@
 
 import torch
 
-from tests.render.reference import render_ref
 from usplat_dr.render import rasterize
+from usplat_dr.render.reference import render_ref
 from usplat_dr.render.scenes import GaussianScene
 
 

@@ -1,4 +1,5 @@
-"""Forward agreement of the rasteriser with the dense float64 reference (tests/render/reference.py).
+"""Forward agreement of the rasteriser with the dense float64 reference
+(``usplat_dr.render.reference``).
 
 Tolerances: float32 against float64. Colour and alpha are sums of <= ~100 weighted terms of
 size <= 1 (observed errors ~5e-7); 1e-5 leaves 20x margin while a wrong rule (a missed skip, a
@@ -12,8 +13,8 @@ import pytest
 import torch
 
 from tests.render.helpers import max_err, render_both
-from tests.render.reference import render_ref
 from usplat_dr.render import RasterSettings, rasterize
+from usplat_dr.render.reference import render_ref
 from usplat_dr.render.scenes import (
     GaussianScene,
     covariances_from,

@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from tests.render.helpers import gradients, weighted_loss, with_grad
-from tests.render.reference import render_ref
 from usplat_dr.geometry.cameras import normalized_intrinsics
 from usplat_dr.render import RasterSettings, rasterize
+from usplat_dr.render.reference import render_ref
 from usplat_dr.render.scenes import (
     GaussianScene,
     covariances_from,

@@ -1,6 +1,7 @@
 """Per-target pruning (``usplat_dr.render.prune``) against the dense float64 reference
-renderer (``reference.py``): exact culling drops only Gaussians that render nothing, merging
-follows the moment-matching equations, the budget keeps the most important ones."""
+renderer (``usplat_dr.render.reference``): exact culling drops only Gaussians that render
+nothing, merging follows the moment-matching equations, the budget keeps the most important
+ones."""
 
 import math
 
@@ -8,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from tests.render.reference import project_ref, render_ref
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.prune import PruneSettings, prune, screen_footprint
+from usplat_dr.render.reference import project_ref, render_ref
 
 
 def random_scene(seed=0, b=2, g=1500, shape=(48, 64)):

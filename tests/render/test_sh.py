@@ -3,7 +3,7 @@ import pytest
 import torch
 from drjit.llvm.ad import Float
 
-from tests.render.reference import sh_basis_3dgs, sh_basis_mvsplat
+from usplat_dr.render.reference import sh_basis_3dgs, sh_basis_mvsplat
 from usplat_dr.render.sh import sh_basis, sh_degree_for
 
 FIXTURE = torch.load(__import__("pathlib").Path(__file__).parents[1] / "fixtures"

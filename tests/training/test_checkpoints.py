@@ -1,6 +1,7 @@
 """The shipped checkpoints: every manifest entry's file exists, matches its sha256, stays
 within the size budget, loads with weights_only (plain data, nothing executed) and renders;
-(b) and (c) name the (a) they were fine-tuned from."""
+(b) and (c) name the (a) they were fine-tuned from; the registry
+(``usplat_dr.training.checkpoints``) reads them."""
 
 import hashlib
 import json
@@ -15,7 +16,13 @@ import pytest
 import torch
 
 from usplat_dr.model import UniqueSplat
-from usplat_dr.training.checkpoints import load_model
+from usplat_dr.training.checkpoints import (
+    BASE,
+    SHIPPED,
+    load_model,
+    registered_verdict,
+    shipped_checkpoints,
+)
 
 ROOT = Path(__file__).parents[2] / "checkpoints"
 MANIFEST = json.loads((ROOT / "manifest.json").read_text())
@@ -48,6 +55,19 @@ def test_manifest_lists_the_required_models_within_budget():
         elif e.get("init_from"):
             # a staged (a): its ancestry starts at a shipped checkpoint
             assert Path(e["init_from"]).name in files, e["name"]
+
+
+def test_the_registry_names_shipped_files(tmp_path):
+    """``shipped_checkpoints`` and ``registered_verdict`` read this folder (the default root in a
+    source checkout); the names the demo starts from are in the manifest."""
+    shipped = shipped_checkpoints(ROOT)
+    assert {BASE, *SHIPPED.values()} <= set(shipped)
+    assert shipped == {e["name"]: ROOT / e["file"] for e in MANIFEST}
+    assert set(shipped_checkpoints()) == set(shipped)
+    assert registered_verdict(ROOT) == json.loads((ROOT / "verdict.json").read_text())
+    assert registered_verdict(tmp_path) is None
+    with pytest.raises(FileNotFoundError, match="manifest.json"):
+        shipped_checkpoints(tmp_path)
 
 
 def in_history(commit: str) -> bool:

@@ -17,7 +17,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.model import UniqueSplat
 from usplat_dr.training import Trainer
 from usplat_dr.training.config import model_from_config
-from usplat_dr.training.trainer import depth_loss, target_depth_loss
+from usplat_dr.training.losses import depth_loss, mse_loss, target_depth_loss, training_loss
 
 CONFIGS = Path(__file__).parents[2] / "usplat_dr" / "configs"
 pytestmark = pytest.mark.usefixtures("restore_threads")
@@ -99,6 +99,27 @@ def test_target_depth_loss_matches_a_float64_reference():
     assert (depth.grad[kept] != 0).all() and (depth.grad[~kept] == 0).all()
     assert (alpha.grad[kept] != 0).all()
     assert target_depth_loss(depth, alpha, torch.full_like(z, math.inf)).item() == 0.0
+
+
+def test_training_loss_weighs_its_terms_until_depth_until_step(synth_root, tmp_path):
+    trainer = Trainer(config(synth_root, tmp_path, 4, "model.variant=baseline", "loss.mse=2",
+                             "loss.depth=0.5", "loss.target_depth=0.25",
+                             "loss.depth_until_step=3"))
+    batch = trainer.batches.next()
+    with torch.no_grad():
+        out = trainer.model(*model_inputs(batch, trainer.device))
+    cfg, context = trainer.config.loss, batch["context"]
+    mse = mse_loss(out.color, batch["target"]["image"])
+    d = depth_loss(out.aux, context["depth"], context["intrinsics"])
+    t = target_depth_loss(out.depth, out.alpha, batch["target"]["depth"])
+    loss, parts = training_loss(out, batch, cfg, 2, trainer.device)
+    # the terms added in this order: the same float32 sums, so equal bit for bit
+    assert torch.equal(loss, 2 * mse + 0.5 * d + 0.25 * t)
+    assert parts == {"mse": mse.item(), "depth": d.item(), "target_depth": t.item()}
+    assert torch.equal(trainer.loss(out, batch)[0], training_loss(out, batch, cfg, 0,
+                                                                  trainer.device)[0])
+    loss, parts = training_loss(out, batch, cfg, 3, trainer.device)  # the depth terms end
+    assert torch.equal(loss, 2 * mse) and set(parts) == {"mse"}
 
 
 def test_context_depths_are_where_the_gaussians_sit(synth_root):

@@ -309,10 +309,10 @@ def disk_full(*args, **kwargs):
     raise OSError(errno.ENOSPC, "No space left on device")
 
 
-@pytest.mark.parametrize("writer, file", [("torch_save", "last.ckpt"),
-                                          ("atomic_open", "metrics.csv")])
+@pytest.mark.parametrize("writer, file", [("trainer.torch_save", "last.ckpt"),
+                                          ("run_log.atomic_open", "metrics.csv")])
 def test_a_full_disk_names_the_file(data, tmp_path, capsys, monkeypatch, writer, file):
-    monkeypatch.setattr(f"usplat_dr.training.trainer.{writer}", disk_full)
+    monkeypatch.setattr(f"usplat_dr.training.{writer}", disk_full)
     err = one_line_error(capsys, main(usplat_train(*overrides(data, tmp_path, 2))))
     assert "disk full" in err and str(tmp_path) in err and file in err
 

@@ -1,10 +1,11 @@
 """Training steps with the cores kept awake (``usplat_dr.training.cores.CoreKeeper``, what ``usplat
 train`` does by default when its threads cover every core) against without: each setting in
 its own processes, alternated round by round (a busy host slows both alike), the spinners
-running for the whole process as in a training run. Per process: the median of ``--steps``
-timed steps (after 3 warm-up steps) of the tiny preset at 64x64, 2 context + 4 targets, the
-shipped recipe, phase by phase as ``training.py`` times them; then the median over rounds.
-Wall and process CPU time (the spinners' CPU time is not counted: it is time the job left idle).
+running for the whole process as in a training run. Per process (``training.py --awake on|off``
+beside this script, run as a subprocess): the median of ``--steps`` timed steps (after 3 warm-up
+steps) of the tiny preset at 64x64, 2 context + 4 targets, the shipped recipe, phase by phase
+as ``training.py`` times them; then the median over rounds. Wall and process CPU time (the
+spinners' CPU time is not counted: it is time the job left idle).
 
     python train/bench/cores.py --data outputs/big/train480 --threads 2 --rounds 4
 """
@@ -16,35 +17,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import usplat_dr  # noqa: F401  (libLLVM before drjit)
-
-PHASES = ["data", "forward", "loss", "backward", "norms+clip", "optimiser", "total"]
-
-
-def one_process(args) -> dict:
-    """This process's medians (ms) per variant, with or without the keeper."""
-    import logging
-
-    from training import make_trainer, timed_step
-
-    from usplat_dr.training.cores import CoreKeeper
-
-    logging.basicConfig(level=logging.ERROR)
-    logging.getLogger("usplat_dr").setLevel(logging.ERROR)
-    keeper = CoreKeeper().start() if args.awake == "on" else None
-    try:
-        out = {}
-        for variant in args.variants:
-            tr = make_trainer(args.data, variant, args.threads)
-            rs = [timed_step(tr, tr.batches.next(), False) for _ in range(args.steps + 3)][3:]
-            out[variant] = {"wall": {ph: 1000 * statistics.median(r["wall"][ph] for r in rs)
-                                     for ph in PHASES},
-                            "cpu": 1000 * statistics.median(r["cpu"]["total"] for r in rs)}
-        out["spinners"] = len(keeper.procs) if keeper else 0
-        return out
-    finally:
-        if keeper is not None:
-            keeper.stop()
+#: The script that times one process's steps (a subprocess per round and setting).
+TRAINING = Path(__file__).resolve().with_name("training.py")
 
 
 def main(argv=None) -> int:
@@ -54,15 +28,11 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=15, help="timed steps per process")
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--variants", nargs="+", default=["baseline", "full"])
-    p.add_argument("--awake", choices=["on", "off"], help=argparse.SUPPRESS)  # one process
     args = p.parse_args(argv)
-    if args.awake:
-        print(json.dumps(one_process(args)))
-        return 0
     runs = {"off": [], "on": []}
     for r in range(args.rounds):
         for setting, results in runs.items():
-            cmd = [sys.executable, str(Path(__file__).resolve()), "--data", args.data,
+            cmd = [sys.executable, str(TRAINING), "--data", args.data,
                    "--threads", str(args.threads), "--steps", str(args.steps), "--variants",
                    *args.variants, "--awake", setting]
             res = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -75,16 +45,17 @@ def main(argv=None) -> int:
     if runs["on"][0]["spinners"] == 0:
         print("note: no spinner started here (not Linux, or SCHED_IDLE refused): both rows "
               "ran without")
+    phases = list(runs["on"][0][args.variants[0]]["wall"])  # training.py's, in its order
     print(f"\nthreads={args.threads}, {args.rounds} rounds x {args.steps} steps per process; "
           f"medians over rounds of per-process medians (ms); CPU = process CPU time")
-    print("| variant | cores | " + " | ".join(PHASES) + " | steps/s | CPU ms/step |")
-    print("|---|---|" + "---|" * (len(PHASES) + 2))
+    print("| variant | cores | " + " | ".join(phases) + " | steps/s | CPU ms/step |")
+    print("|---|---|" + "---|" * (len(phases) + 2))
     for variant in args.variants:
         for setting, label in (("off", "idle halts"), ("on", "kept awake")):
             med = {ph: statistics.median(x[variant]["wall"][ph] for x in runs[setting])
-                   for ph in PHASES}
+                   for ph in phases}
             cpu = statistics.median(x[variant]["cpu"] for x in runs[setting])
-            print(f"| {variant} | {label} | " + " | ".join(f"{med[ph]:.1f}" for ph in PHASES)
+            print(f"| {variant} | {label} | " + " | ".join(f"{med[ph]:.1f}" for ph in phases)
                   + f" | {1000 / med['total']:.2f} | {cpu:.0f} |")
     for variant in args.variants:
         on, off = (statistics.median(x[variant]["wall"]["total"] for x in runs[s])

@@ -36,9 +36,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def settings_grid():
-    """``usplat bench``'s named settings (``jobs.bench.PRUNES``), and merging without culling."""
-    from usplat_dr.jobs.bench import PRUNES
-    from usplat_dr.render.prune import PruneSettings
+    """``usplat bench``'s named settings (``render.prune.PRUNES``), and merging without culling."""
+    from usplat_dr.render.prune import PRUNES, PruneSettings
 
     return {"none": PRUNES["all"], "cull": PRUNES["cull"],
             "cull+merge1px": PRUNES["cull+merge1px"],
@@ -81,22 +80,23 @@ def measure(model, batches, size: int, grid: dict) -> dict:
     import torch
     import torch.nn.functional as F
 
-    from usplat_dr.evaluation.protocol import model_inputs
+    from usplat_dr.data.types import model_inputs
     from usplat_dr.render import RasterSettings, rasterize
     from usplat_dr.render.prune import prune as prune_gaussians
 
     rows = {name: [] for name in grid}
     for i, batch in enumerate(batches):
-        inputs = list(model_inputs(batch, "cpu"))
-        images = inputs[0]
+        inputs = model_inputs(batch, "cpu")
+        images = inputs.images
         if images.shape[-1] != size:
             b, v = images.shape[:2]
-            inputs[0] = F.interpolate(images.flatten(0, 1), size=(size, size),
-                                      mode="bilinear", align_corners=False,
-                                      antialias=False).unflatten(0, (b, v))
+            inputs = inputs._replace(images=F.interpolate(
+                images.flatten(0, 1), size=(size, size), mode="bilinear", align_corners=False,
+                antialias=False).unflatten(0, (b, v)))
         with torch.inference_mode():
             out = model(*inputs, render=False)
-        ti, te, tn, tf = inputs[5:9]
+        ti, te, tn, tf = (inputs.target_intrinsics, inputs.target_extrinsics, inputs.target_near,
+                          inputs.target_far)
         colors = {}
         g = out.gaussians
         b, n = tn.shape

@@ -6,7 +6,7 @@ For each size: forward (outputs evaluated) and forward+backward (gradients w.r.t
 inputs evaluated) through the torch entry point, after warm-up, runs interleaved, median wall and
 process CPU time; Dr.Jit's peak allocation for one forward+backward; the cold-start time (first
 call in a new process with an empty kernel cache, measured in a subprocess); and the dense torch
-float32 reference (every pixel against every Gaussian, tests/render/reference.py) where it fits
+float32 reference (every pixel against every Gaussian, usplat_dr/render/reference.py) where it fits
 in memory, with ratios; and the same calls through the Dr.Jit entry (``rasterize_drjit``), whose
 difference from the torch entry is the bridge's cost. Prints Markdown tables.
 
@@ -35,6 +35,7 @@ import torch
 from usplat_dr.backend import module_for
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.pipeline import rasterize_drjit
+from usplat_dr.render.reference import render_ref
 from usplat_dr.render.scenes import pixel_aligned_scene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -101,7 +102,7 @@ def make_native_fns(scene, settings):
 
 def previous_value_flags(tensors, near, far) -> list[bool]:
     """The input value checks as the bridge did them before 2026-11-25 (torch reductions, one
-    host read): the baseline the current ``bridge._value_flags`` is timed against."""
+    host read): the baseline the current ``bridge.value_flags`` is timed against."""
     flags = torch.stack([torch.isfinite(t.detach()).all() for t in tensors]
                         + [(near.detach() > 0).all(), (far.detach() > near.detach()).all()])
     return flags.cpu().tolist()
@@ -109,12 +110,12 @@ def previous_value_flags(tensors, near, far) -> list[bool]:
 
 def make_check_fns(scene) -> dict:
     """The torch entry's value checks alone, previous and current code."""
-    from usplat_dr.render.bridge import _value_flags
+    from usplat_dr.render.bridge import value_flags
 
     args = [t for t in scene.args() if isinstance(t, torch.Tensor)]
     near, far = scene.args()[2], scene.args()[3]
     return {"checks_previous": lambda: previous_value_flags(args, near, far),
-            "checks_now": lambda: _value_flags(args, near, far)}
+            "checks_now": lambda: value_flags(args, near, far)}
 
 
 def time_interleaved(fns: dict, runs: int) -> dict:
@@ -185,9 +186,6 @@ def main() -> None:
         dr.set_thread_count(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: torch sees no CUDA GPU on this machine")
-
-    sys.path.insert(0, str(ROOT / "tests" / "render"))
-    from reference import render_ref
 
     torch.set_flush_denormal(True)  # the dense reference is 2x slower on denormals
     load = os.getloadavg()

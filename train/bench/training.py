@@ -10,14 +10,22 @@ Wall and process CPU time; medians over steps.
 ``--clip N``: instead, the gradient norms and clipping alone, N times each on one step's
 gradients (restored before every call), alternating the two calls the trainer made before
 (``group_grad_norms`` then ``torch.nn.utils.clip_grad_norm_``) and ``Trainer.clip_gradients``.
+
+``--awake on|off``: instead, one process of train/bench/cores.py's comparison: the current
+trainer's per-phase medians of ``--steps`` steps (after 3 warm-up steps) per variant, with the
+cores kept awake (``usplat_dr.training.cores.CoreKeeper``, for the whole process) or not, as one
+JSON line.
 """
 
 import argparse
+import json
 import statistics
 import sys
 import time
 
 import usplat_dr  # noqa: F401  (libLLVM before drjit)
+
+PHASES = ["data", "forward", "loss", "backward", "norms+clip", "optimiser", "total"]
 
 
 def old_group_grad_norms(trainer) -> dict:
@@ -106,6 +114,30 @@ def clip_ab(trainer, batch, repeats: int) -> tuple[float, float]:
     return tuple(1000 * statistics.median(t) for t in times)
 
 
+def awake_medians(args) -> dict:
+    """This process's medians (ms) per variant, with or without the cores kept awake."""
+    import logging
+
+    from usplat_dr.training.cores import CoreKeeper
+
+    logging.basicConfig(level=logging.ERROR)
+    logging.getLogger("usplat_dr").setLevel(logging.ERROR)
+    keeper = CoreKeeper().start() if args.awake == "on" else None
+    try:
+        out = {}
+        for variant in args.variants:
+            tr = make_trainer(args.data, variant, args.threads)
+            rs = [timed_step(tr, tr.batches.next(), False) for _ in range(args.steps + 3)][3:]
+            out[variant] = {"wall": {ph: 1000 * statistics.median(r["wall"][ph] for r in rs)
+                                     for ph in PHASES},
+                            "cpu": 1000 * statistics.median(r["cpu"]["total"] for r in rs)}
+        out["spinners"] = len(keeper.procs) if keeper else 0
+        return out
+    finally:
+        if keeper is not None:
+            keeper.stop()
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="a synthetic training set (64x64)")
@@ -114,7 +146,13 @@ def main(argv=None) -> int:
     p.add_argument("--variants", nargs="+", default=["baseline", "full"])
     p.add_argument("--clip", type=int, default=0, metavar="N",
                    help="time the gradient norms and clipping alone, N times each")
+    p.add_argument("--awake", choices=["on", "off"],
+                   help="one process of train/bench/cores.py: the current trainer with the "
+                        "cores kept awake or not; medians per phase as JSON")
     args = p.parse_args(argv)
+    if args.awake:
+        print(json.dumps(awake_medians(args)))
+        return 0
     import logging
 
     import torch
@@ -145,16 +183,15 @@ def main(argv=None) -> int:
             r = timed_step(tr, batch, old)
             if i >= 3:  # warm-up: kernels compile, allocator settles
                 results[(variant, old)].append(r)
-    phases = ["data", "forward", "loss", "backward", "norms+clip", "optimiser", "total"]
     print(f"threads={args.threads}, {args.steps} steps per configuration, medians (ms); "
           f"CPU = process CPU time")
-    print("| variant | trainer | " + " | ".join(phases) + " | steps/s | CPU ms/step |")
-    print("|---|---|" + "---|" * (len(phases) + 2))
+    print("| variant | trainer | " + " | ".join(PHASES) + " | steps/s | CPU ms/step |")
+    print("|---|---|" + "---|" * (len(PHASES) + 2))
     for (variant, old), rs in results.items():
-        med = {ph: 1000 * statistics.median(r["wall"][ph] for r in rs) for ph in phases}
+        med = {ph: 1000 * statistics.median(r["wall"][ph] for r in rs) for ph in PHASES}
         cpu = 1000 * statistics.median(r["cpu"]["total"] for r in rs)
         print(f"| {variant} | {'previous' if old else 'current'} | "
-              + " | ".join(f"{med[ph]:.1f}" for ph in phases)
+              + " | ".join(f"{med[ph]:.1f}" for ph in PHASES)
               + f" | {1000 / med['total']:.2f} | {cpu:.0f} |")
     for variant in args.variants:
         old = statistics.median(r["wall"]["total"] for r in results[(variant, True)])

@@ -46,7 +46,7 @@ def run(kind: str = "indoor", seed: int = 3, size: int = 48, frames: int = 12,
     from usplat_dr.data.synth import render_spec, scene_record
     from usplat_dr.data.synth.scenes import make_spec
     from usplat_dr.io.images import grid, save_png
-    from usplat_dr.jobs.fit_scene import init_from_depth, split_views, views_from_record
+    from usplat_dr.training.per_scene import init_from_depth, split_views, views_from_record
 
     t0 = time.perf_counter()
     spec = make_spec(kind, seed, frames)

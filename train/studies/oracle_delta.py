@@ -285,6 +285,12 @@ def main(argv=None) -> int:
     p.add_argument("--data", help="a held-out synthetic set")
     p.add_argument("--split", default="standard")
     p.add_argument("--scenes", type=int, default=30)
+    p.add_argument("--skip-first", type=int, default=0, metavar="K",
+                   help="leave the first K of the --scenes to another process (each scene's "
+                        "seed is --seed + its position, so two processes with --skip-first 0 "
+                        "--scenes K and --skip-first K give the rows one process would); "
+                        "merge their per_target.csv files, then rerun with --skip-first 0 "
+                        "to write the summary")
     p.add_argument("--layer", nargs="+", choices=LAYERS, default=["all"],
                    help="the convolutions that take Delta W (all: both heads' four, as (c))")
     p.add_argument("--rank", type=rank_arg, default=4,
@@ -348,7 +354,7 @@ def main(argv=None) -> int:
     for s, example in enumerate(ds):
         if s == args.scenes:
             break
-        if example["scene"] in done:
+        if example["scene"] in done or s < args.skip_first:
             continue
         batch = default_collate([example])
         with torch.no_grad():  # (a) as `usplat eval` runs it: the step-0 check's reference

@@ -31,7 +31,6 @@ from usplat_dr import portable
 portable.enable()  # AVX2 code paths, as the usplat command (before torch is imported)
 
 CONFIG = "synthetic_tiny_depth.yaml"  # packaged (usplat_dr/configs/)
-VARIANTS = ("baseline", "agnostic", "full")
 
 
 def run_name(variant: str, seed: int) -> str:
@@ -92,6 +91,9 @@ def csv_rows(path: Path):
 
 
 def main(argv=None) -> int:
+    # here, not at the top: the model loads torch, after portable.enable() and only when run
+    from usplat_dr.model.uniquesplat import VARIANTS
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--init", required=True, help="the trained (a) all runs start from")
     p.add_argument("--data", required=True, help="training set root")

@@ -55,7 +55,6 @@ from usplat_dr.data.shims import augment_flip, crop_views, fov_degrees, normaliz
 from usplat_dr.data.view_sampler import (
     FramesNotInSceneError,
     StepTracker,
-    ViewSamplerAllCfg,
     ViewSamplerBoundedCfg,
     ViewSamplerCfg,
     ViewSamplerEvaluationCfg,
@@ -403,97 +402,117 @@ class ChunkDataset(IterableDataset):
         return example
 
 
-#: The keys of a config's ``dataset`` section, and the view samplers it can name.
-SECTION_KEYS = {"name", "roots", "image_shape", "view_sampler", "overrides", "evaluation_index"}
-SAMPLERS = {"bounded": ViewSamplerBoundedCfg, "evaluation": ViewSamplerEvaluationCfg,
-            "all": ViewSamplerAllCfg}
-
-
-def check_dataset_section(dcfg: dict, stage: str = "train",
-                          origins: dict[str, str] | None = None
-                          ) -> tuple[ViewSamplerCfg, dict]:
-    """The view sampler and the ``DatasetCfg`` overrides that a config's ``dataset`` section
-    describes for ``stage``, every key and value checked without reading the disk: an unknown
-    key, a value of the wrong type or out of range is a ``ConfigError`` naming the key and,
-    given ``origins`` (``Config.origins``), the file or override that set it. ``roots`` is
-    checked by ``dataset_from_section``, which needs it.
+@dataclass(frozen=True)
+class DatasetSectionCfg:
+    """A config's ``dataset`` section (``usplat_dr.config.load_typed`` loads it, with
+    ``RootCfg``'s other sections, and ``checked`` checks it once): which preset, where the
+    data is, and the ``DatasetCfg`` fields it sets for every stage (``dataset_cfg``).
 
     Examples:
-        >>> sampler, over = check_dataset_section({"image_shape": [32, 48]})
-        >>> sampler.name, over
-        ('bounded', {'image_shape': (32, 48)})
+        >>> section = load_typed(DatasetSectionCfg, {"roots": ["d"], "image_shape": [32, 48]})
+        >>> section.roots, section.sampler("train").name, section.dataset_overrides()
+        (('d',), 'bounded', {'image_shape': (32, 48)})
+        >>> load_typed(DatasetSectionCfg, {"name": "imagenet"}, "dataset")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        usplat_dr.config.ConfigError: dataset.name='imagenet' must be one of ['acid', ...
     """
-    origins = origins or {}
 
-    def where(key: str) -> str:
-        return where_set(origins, key)
+    name: str = "re10k"  # PRESETS: the field's near/far and image-shape settings
+    # dataset folders (one, or a list); checked by dataset_from_section, which needs them
+    roots: str | tuple[str, ...] = ()
+    image_shape: tuple[int, int] | None = None  # views are cropped to it (None: DatasetCfg's)
+    view_sampler: ViewSamplerCfg = field(default_factory=ViewSamplerBoundedCfg)  # training's
+    overrides: dict = field(default_factory=dict)  # other fields of DatasetCfg
+    # outside training: an evaluation index JSON, whose context/target frames replace the
+    # view sampler's
+    evaluation_index: str | None = None
 
-    if not isinstance(dcfg, dict):
-        raise ConfigError(f"dataset must be a mapping, got {dcfg!r} (set in {where('dataset')})")
-    check_keys(dcfg, SECTION_KEYS, "dataset", origins)
-    name = dcfg.get("name", "re10k")
-    if name not in PRESETS:
-        raise ConfigError(f"dataset.name={name!r} must be one of {sorted(PRESETS)} (set in "
-                          f"{where('dataset.name')})")
-    roots = dcfg.get("roots")
-    if roots is not None and not isinstance(roots, (str, os.PathLike)) and not (
-            isinstance(roots, list) and all(isinstance(r, (str, os.PathLike)) for r in roots)):
-        raise ConfigError(f"dataset.roots={roots!r} must be a folder or a list of folders (set "
-                          f"in {where('dataset.roots')})")
-    if stage != "train" and dcfg.get("evaluation_index"):
-        # a path from the command line or the evaluation protocol (str or Path)
-        sampler = ViewSamplerEvaluationCfg(str(dcfg["evaluation_index"]))
-    else:
-        vs = dcfg.get("view_sampler") or {"name": "bounded"}
-        if not isinstance(vs, dict):
-            raise ConfigError(f"dataset.view_sampler={vs!r} must be a mapping (set in "
-                              f"{where('dataset.view_sampler')})")
-        vs = dict(vs)
-        kind = vs.pop("name", "bounded")
-        if kind not in SAMPLERS:
-            raise ConfigError(f"dataset.view_sampler.name={kind!r} must be one of "
-                              f"{sorted(SAMPLERS)} (set in {where('dataset.view_sampler.name')})")
-        sampler = load_typed(SAMPLERS[kind], vs, "dataset.view_sampler", origins)
-    over = dcfg.get("overrides") or {}
-    if not isinstance(over, dict):
-        raise ConfigError(f"dataset.overrides={over!r} must be a mapping (set in "
-                          f"{where('dataset.overrides')})")
-    known = {f.name for f in dataclasses.fields(DatasetCfg)} - {"roots", "name", "view_sampler"}
-    check_keys(over, known, "dataset.overrides", origins)
-    hints = typing.get_type_hints(DatasetCfg)
-    typed = {f"dataset.overrides.{k}": typed_value(hints[k], v, f"dataset.overrides.{k}",
-                                                    origins) for k, v in over.items()}
-    if "image_shape" in dcfg:
-        typed["dataset.image_shape"] = typed_value(hints["image_shape"], dcfg["image_shape"],
-                                                   "dataset.image_shape", origins)
-    for key, shape in typed.items():
-        # views are decoded and cropped to these shapes: beyond MAX_IMAGE_PIXELS, a typo
-        if key.endswith("image_shape") and not (
-                min(shape) >= 1 and shape[0] * shape[1] <= MAX_IMAGE_PIXELS):
-            raise ConfigError(f"{key}={list(shape)} must be two sizes >= 1, at most "
-                              f"{MAX_IMAGE_PIXELS:,} pixels (set in {where(key)})")
-    over = {k.rpartition(".")[2]: v for k, v in typed.items()}
-    defaults = {f.name: f.default for f in dataclasses.fields(DatasetCfg)
-                if f.name in ("near", "far")}
-    bounds = {**defaults, **PRESETS[name], **over}
-    near, far = bounds["near"], bounds["far"]
-    if near is not None and far is not None and not (
-            math.isfinite(near) and math.isfinite(far) and 0 < near < far):
-        raise ConfigError(f"dataset near={near}, far={far} must be 0 < near < far (set in "
-                          f"{where('dataset.overrides')})")
-    return sampler, over
+    @classmethod
+    def from_dict(cls, section: dict) -> "DatasetSectionCfg":
+        """The section from the plain mapping that evaluation code passes (``name``,
+        ``roots``, ``image_shape``, ``evaluation_index``...: folders and files as
+        ``os.PathLike`` or ``str``), checked like a config's."""
+        if isinstance(section, dict):
+            section = dict(section)
+            roots = section.get("roots")
+            if isinstance(roots, os.PathLike):
+                section["roots"] = os.fspath(roots)
+            elif isinstance(roots, (list, tuple)):
+                section["roots"] = [os.fspath(r) if isinstance(r, os.PathLike) else r
+                                     for r in roots]
+            if isinstance(section.get("evaluation_index"), os.PathLike):
+                section["evaluation_index"] = os.fspath(section["evaluation_index"])
+        return load_typed(cls, section, "dataset")
+
+    def checked(self, section: str = "dataset",
+                origins: dict[str, str] | None = None) -> "DatasetSectionCfg":
+        """This section checked without reading the disk, in its normal form (``roots`` a
+        tuple, ``overrides`` typed by ``DatasetCfg``'s fields): a preset name, overrides of
+        known fields and types, image shapes of at most ``MAX_IMAGE_PIXELS``, and 0 < near <
+        far; else a ``ConfigError`` naming the key and, given ``origins``
+        (``Config.origins``), the file or override that set it."""
+        origins, section = origins or {}, section or "dataset"
+        if self.name not in PRESETS:
+            raise ConfigError(f"{section}.name={self.name!r} must be one of {sorted(PRESETS)} "
+                              f"(set in {where_set(origins, f'{section}.name')})")
+        overrides = self._typed_overrides(section, origins)
+        shapes = {f"{section}.overrides.image_shape": overrides.get("image_shape"),
+                  f"{section}.image_shape": self.image_shape}
+        for key, shape in shapes.items():
+            # views are decoded and cropped to these shapes: beyond MAX_IMAGE_PIXELS, a typo
+            if shape is not None and not (
+                    min(shape) >= 1 and shape[0] * shape[1] <= MAX_IMAGE_PIXELS):
+                raise ConfigError(f"{key}={list(shape)} must be two sizes >= 1, at most "
+                                  f"{MAX_IMAGE_PIXELS:,} pixels (set in "
+                                  f"{where_set(origins, key)})")
+        defaults = {f.name: f.default for f in dataclasses.fields(DatasetCfg)
+                    if f.name in ("near", "far")}
+        bounds = {**defaults, **PRESETS[self.name], **overrides}
+        near, far = bounds["near"], bounds["far"]
+        if near is not None and far is not None and not (
+                math.isfinite(near) and math.isfinite(far) and 0 < near < far):
+            raise ConfigError(f"{section} near={near}, far={far} must be 0 < near < far (set "
+                              f"in {where_set(origins, f'{section}.overrides')})")
+        roots = (self.roots,) if isinstance(self.roots, str) else self.roots
+        return dataclasses.replace(self, roots=roots, overrides=overrides)
+
+    def _typed_overrides(self, section: str, origins: dict[str, str]) -> dict:
+        """``overrides`` checked against ``DatasetCfg``'s fields (``roots``, ``name`` and
+        ``view_sampler`` have keys of their own here) and typed by them."""
+        key = f"{section}.overrides"
+        known = {f.name for f in dataclasses.fields(DatasetCfg)} - {"roots", "name",
+                                                                     "view_sampler"}
+        check_keys(self.overrides, known, key, origins)
+        hints = typing.get_type_hints(DatasetCfg)
+        return {k: typed_value(hints[k], v, f"{key}.{k}", origins)
+                for k, v in self.overrides.items()}
+
+    def sampler(self, stage: str) -> ViewSamplerCfg:
+        """The view sampler of ``stage``: outside training, ``evaluation_index``'s when set."""
+        if stage != "train" and self.evaluation_index:
+            return ViewSamplerEvaluationCfg(self.evaluation_index)
+        return self.view_sampler
+
+    def dataset_overrides(self) -> dict:
+        """The ``DatasetCfg`` fields the section sets (``image_shape`` over the same key of
+        ``overrides``)."""
+        shape = {} if self.image_shape is None else {"image_shape": self.image_shape}
+        return {**self.overrides, **shape}
 
 
-def dataset_from_section(dcfg: dict, stage: str, step_tracker=None, rank: int | None = None,
-                         world_size: int | None = None):
-    """The dataset a config's ``dataset`` section describes (``name``, ``roots``,
-    ``image_shape``, ``view_sampler``, ``overrides``, ``evaluation_index``; checked by
-    ``check_dataset_section``) for ``stage``; outside training, ``evaluation_index`` selects
-    the evaluation sampler."""
-    sampler, over = check_dataset_section(dcfg, stage)
-    if not dcfg.get("roots"):
+def dataset_from_section(section: DatasetSectionCfg | dict, stage: str, step_tracker=None,
+                         rank: int | None = None, world_size: int | None = None):
+    """The dataset a config's ``dataset`` section describes for ``stage``: a loaded
+    ``DatasetSectionCfg`` (``RootCfg.dataset``), or the plain mapping evaluation code passes
+    (``{"name": "synth", "roots": [...], "image_shape": [...]}``, checked here). Outside
+    training, ``evaluation_index`` selects the evaluation sampler."""
+    if not isinstance(section, DatasetSectionCfg):
+        section = DatasetSectionCfg.from_dict(section)
+    if not section.roots:
         raise ConfigError("dataset.roots must name at least one dataset folder (e.g. "
                           "dataset.roots=[datasets/re10k]); make a synthetic one with "
                           "`usplat synth --out DIR`")
-    cfg = dataset_cfg(dcfg.get("name", "re10k"), dcfg["roots"], view_sampler=sampler, **over)
+    cfg = dataset_cfg(section.name, section.roots, view_sampler=section.sampler(stage),
+                      **section.dataset_overrides())
     return ChunkDataset(cfg, stage, step_tracker, rank=rank, world_size=world_size)

@@ -12,12 +12,13 @@ them alike:
   measurement through ``/proc/self/clear_refs``; CUDA: ``max_memory_allocated``);
 - parameters, Gaussians rendered per view, and accuracy: PSNR, SSIM, depth AbsRel.
 
-Axes: configurations (size preset x variant), Gaussian budgets (``PRUNES``: everything, exact
-culling, merging near-duplicates, keeping the most important fraction) at the training
-resolution, and render resolutions (default pruning). Writes ``bench.csv``, ``bench.png``
-(accuracy against time per view with the Pareto front; accuracy against Gaussians rendered),
-``bench.md`` (the table) and ``summary.json`` (the smallest configuration within 0.3 dB of the
-best, and which pruning settings cost less than 0.05 dB everywhere).
+Axes: configurations (size preset x variant), Gaussian budgets
+(``usplat_dr.render.prune.PRUNES``: everything, exact culling, merging near-duplicates, keeping
+the most important fraction) at the training resolution, and render resolutions (default
+pruning). Writes ``bench.csv``, ``bench.png`` (accuracy against time per view with the Pareto
+front; accuracy against Gaussians rendered), ``bench.md`` (the table) and ``summary.json`` (the
+smallest configuration within 0.3 dB of the best, and which pruning settings cost less than
+0.05 dB everywhere).
 """
 
 import argparse
@@ -40,24 +41,16 @@ from usplat_dr.evaluation import depth_metrics, nan_mean, synthetic_indices
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.io import atomic_open, write_json
 from usplat_dr.jobs.arguments import non_negative_int
-from usplat_dr.jobs.budgets import BASE, BUDGETS, ensure_data, shipped_checkpoints, training_config
+from usplat_dr.jobs.budgets import BUDGETS, ensure_data, training_config
 from usplat_dr.jobs.report import bench_chart, bench_table
 from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS
-from usplat_dr.render.prune import PruneSettings
+from usplat_dr.render.prune import PRUNES
 from usplat_dr.training import train
-from usplat_dr.training.checkpoints import load_models
+from usplat_dr.training.checkpoints import BASE, load_models, shipped_checkpoints
 
 log = logging.getLogger(__name__)
 
 LETTERS = {"baseline": "a", "agnostic": "b", "full": "c"}
-PRUNES: dict[str, PruneSettings | None] = {
-    "all": None,
-    "cull": PruneSettings(),
-    "cull+merge1px": PruneSettings(merge=True),
-    "cull+merge2px": PruneSettings(merge=True, merge_pixels=2.0),
-    "keep50%": PruneSettings(keep_fraction=0.5),
-    "keep25%": PruneSettings(keep_fraction=0.25),
-}
 #: The decision rules (train/bench/README.md, "Speed against accuracy: `usplat bench`"): a pruning
 #: setting is safe where it costs < 0.05 dB (on by default only if it also saves time, which on
 #: CPU none does: "Pruning that pays"); the demo's preset is the smallest configuration within

@@ -1,5 +1,6 @@
 """What ``usplat demo`` and ``usplat bench`` share: the budgets (data, fine-tuning steps), the
-shipped checkpoints they start from, the training run's config, and the synthetic data."""
+training run's config, and the synthetic data. The shipped checkpoints they start from are
+``usplat_dr.training.checkpoints``'s registry (``BASE``, ``SHIPPED``)."""
 
 import json
 import shutil
@@ -10,6 +11,13 @@ import torch
 
 from usplat_dr.config import load_config
 from usplat_dr.data.synth import synthesize
+from usplat_dr.model.uniquesplat import VARIANTS
+from usplat_dr.training.checkpoints import BASE, SHIPPED
+
+# VARIANTS, BASE and SHIPPED are re-exported for jobs/report.py, which reads them from here;
+# new code imports them from where they are defined.
+__all__ = ["BASE", "BUDGETS", "CONFIG", "FINETUNE_LR", "PRESET", "SHIPPED", "VARIANTS", "Budget",
+           "ensure_data", "training_config"]
 
 
 @dataclass(frozen=True)
@@ -29,42 +37,11 @@ BUDGETS = {
     "quick": Budget(train_scenes=3, test_scenes=3, frames=12, size=32, steps=4, spp=8,
                     scratch_steps=12),
 }
-VARIANTS = {"baseline": "(a) primary network", "agnostic": "(b) + view-agnostic",
-            "full": "(c) UniqueSplat"}
 #: The demo's size preset: the smallest within 0.3 dB of the best in `usplat bench`
 #: (train/bench/README.md, "Speed against accuracy").
 PRESET = "tiny"
-#: The shipped checkpoints the demo reads (names in checkpoints/manifest.json): the trained
-#: primary network, and per variant the model fine-tuned from it for the same steps (for (a):
-#: trained on, the control the others are paired with).
-BASE = "tiny_baseline"
-SHIPPED = {"baseline": "tiny_baseline_continued", "agnostic": "tiny_agnostic",
-           "full": "tiny_full"}
-#: Where the shipped checkpoints are: package data in a wheel install (usplat_dr/checkpoints,
-#: pyproject.toml maps the repository's checkpoints/ there), else the repository's
-#: checkpoints/ folder (a source checkout or an editable install).
-CHECKPOINTS = next((p for p in (Path(__file__).parents[1] / "checkpoints",
-                                Path(__file__).parents[2] / "checkpoints") if p.is_dir()),
-                   Path(__file__).parents[2] / "checkpoints")
 #: The brief fine-tuning's recipe (the verdict study's, fewer steps).
 FINETUNE_LR = 2e-4
-
-
-def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
-    """The multi-seed verdict shipped beside the checkpoints (``verdict.json``: the
-    pre-registered rule's label per held-out set), or None where there is none."""
-    path = root / "verdict.json"
-    return json.loads(path.read_text()) if path.is_file() else None
-
-
-def shipped_checkpoints(root: Path = CHECKPOINTS) -> dict[str, Path]:
-    """``{manifest name: file}`` of the shipped checkpoints, checked against the manifest."""
-    manifest = root / "manifest.json"
-    if not manifest.is_file():
-        raise FileNotFoundError(f"no {manifest}: the demo starts from the shipped checkpoints "
-                                f"(train them with train/ship_checkpoint.py; see README)")
-    entries = json.loads(manifest.read_text())
-    return {e["name"]: root / e["file"] for e in entries}
 
 
 #: The packaged config the demo's runs start from (usplat_dr/configs/).

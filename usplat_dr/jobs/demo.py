@@ -29,21 +29,17 @@ from usplat_dr.evaluation.verdict import chart as verdict_chart
 from usplat_dr.evaluation.verdict import compare
 from usplat_dr.jobs.arguments import non_negative_int
 from usplat_dr.jobs.bench import BenchConfig, measure, write_results
-from usplat_dr.jobs.budgets import (
+from usplat_dr.jobs.budgets import BUDGETS, PRESET, Budget, ensure_data, training_config
+from usplat_dr.jobs.report import DemoResults, curves, stability, write_report
+from usplat_dr.training import train
+from usplat_dr.training.checkpoints import (
     BASE,
-    BUDGETS,
     CHECKPOINTS,
-    PRESET,
     SHIPPED,
-    Budget,
-    ensure_data,
+    load_model,
     registered_verdict,
     shipped_checkpoints,
-    training_config,
 )
-from usplat_dr.jobs.report import curves, stability, write_report
-from usplat_dr.training import train
-from usplat_dr.training.checkpoints import load_model
 
 log = logging.getLogger(__name__)
 
@@ -119,11 +115,12 @@ def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int =
     timings["speed/accuracy bench"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
     manifest = {e["name"]: e for e in json.loads((checkpoints / "manifest.json").read_text())}
-    report = write_report(out, b, budget, summaries, timings, worst, bench,
-                          {v: stability(r) for v, r in runs.items()}, verdict, tuned,
-                          provenance([data]), {n: manifest[n] for n in
-                                               (BASE, *SHIPPED.values())},
-                          registered_verdict(checkpoints))
+    report = write_report(DemoResults(
+        out=out, budget=b, budget_name=budget, summaries=summaries, timings=timings,
+        worst=worst, bench=bench, stable={v: stability(r) for v, r in runs.items()},
+        verdict=verdict, tuned=tuned, provenance=provenance([data]),
+        manifest={n: manifest[n] for n in (BASE, *SHIPPED.values())},
+        registered=registered_verdict(checkpoints)))
     print(f"report: {report}")
     return report
 

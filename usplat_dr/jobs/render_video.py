@@ -87,7 +87,8 @@ def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,
     """Colour [F, H, W, 3] and alpha-normalised depth [F, H, W] along ``camera_path``."""
     device = torch.device(device)
     inputs = model_inputs(batch, device)
-    images, k, e, near, far = inputs[:5]  # the context views
+    images, k, e = inputs.images, inputs.intrinsics, inputs.extrinsics  # the context views
+    near, far = inputs.near, inputs.far
     path = camera_path(e[0].cpu(), frames).to(device)
     colors, depths = [], []
     for s in range(0, frames, chunk):

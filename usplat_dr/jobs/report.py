@@ -1,8 +1,9 @@
 """Reports from result files: the demo's ``report.md`` (training curves, gradient stability,
 the tables), and ``usplat bench``'s chart and table. Pure functions from results to Markdown
-and PNG; the measuring is in ``demo`` and ``bench``."""
+and PNG; the measuring is in ``demo`` and ``bench``, and ``metrics.csv`` is read by
+``usplat_dr.training.run_log``, which writes it."""
 
-import csv
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -10,15 +11,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
 
+from usplat_dr.evaluation.verdict import Comparison
 from usplat_dr.evaluation.verdict import table as verdict_table
 from usplat_dr.io import atomic_open
 from usplat_dr.jobs.budgets import BASE, FINETUNE_LR, PRESET, SHIPPED, VARIANTS, Budget
-
-
-def read_metrics(run: Path) -> list[dict]:
-    with open(run / "metrics.csv") as f:
-        return list(csv.DictReader(f))
-
+from usplat_dr.training.run_log import curve, read_metrics
 
 GRAD_LABELS = {"grad_primary": "primary network", "grad_agnostic": "view-agnostic (e_a, H_a)",
                "grad_specific": "view-specific H_s",
@@ -31,16 +28,15 @@ def curves(runs: dict, path: Path) -> Path:
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.4))
     for variant, run in runs.items():
         rows = read_metrics(run)
-        steps = [int(r["step"]) for r in rows]
         for ax, key in ((axes[0], "loss"), (axes[1], "psnr")):
-            values = [float(r[key]) for r in rows]
+            steps, values = curve(rows, key)
             line, = ax.plot(steps, values, alpha=0.25, linewidth=0.8)
             ax.plot(steps, smooth(values), color=line.get_color(),
                     label=VARIANTS.get(variant, variant))
         for key, label in GRAD_LABELS.items():
-            values = [float(r[key]) for r in rows if r.get(key)]
+            steps, values = curve(rows, key)
             if values:
-                axes[2].plot(steps[-len(values):], smooth(values), linewidth=1,
+                axes[2].plot(steps, smooth(values), linewidth=1,
                              label=f"{VARIANTS.get(variant, variant)[:3]} {label}")
     axes[0].set(xlabel="step", ylabel="training loss (MSE)", yscale="log")
     axes[1].set(xlabel="step", ylabel="training PSNR (dB)")
@@ -68,12 +64,12 @@ def stability(run: Path) -> dict:
     the first quarter's (bounded: the ratio stays near or below 1), and the skipped steps."""
     rows = read_metrics(run)
     q = max(1, len(rows) // 4)
-    loss = [float(r["loss"]) for r in rows]
+    _, loss = curve(rows, "loss")
     out = {"steps": int(rows[-1]["step"]), "skipped": int(rows[-1]["skipped"]),
            "loss_first_quarter": float(np.median(loss[:q])),
            "loss_last_quarter": float(np.median(loss[-q:])), "parts": {}}
     for key in ("grad_norm", *GRAD_LABELS):
-        values = [float(r[key]) for r in rows if r.get(key)]
+        _, values = curve(rows, key)
         if values:
             out["parts"][key] = {"median": float(np.median(values)), "max": max(values),
                                  "last_over_first_quarter": float(
@@ -129,114 +125,189 @@ def registered_lines(registered: dict | None) -> list[str]:
     return [*lines, ""]
 
 
-def write_report(out: Path, b: Budget, budget: str, summaries: dict, timings: dict,
-                 worst: dict, bench: dict, stable: dict, verdict: list, tuned: dict,
-                 prov: dict, manifest: dict, registered: dict | None = None) -> Path:
-    """``report.md`` in ``out``, from the results of the demo's steps (``run_demo``) and the
-    files they wrote (renders, ``bench_demo/bench.md``, ``bench/bench.md``); ``registered``:
-    the shipped multi-seed verdict (``checkpoints/verdict.json``)."""
-    test = next(iter(summaries.values()))["splits"]["standard"]["scenes"]
-    lines = [
-        "# usplat-dr demo report", "",
-        (f"Budget `{budget}`: {b.test_scenes} fresh held-out scenes rendered by Mitsuba "
-         f"({b.frames} frames, {b.size}x{b.size}; a seed none of the checkpoints was trained or "
-         f"tested on), the shipped `{PRESET}` checkpoints evaluated on them with the field's "
-         f"protocol, and a brief fine-tuning ({b.steps} steps on {b.train_scenes} other "
-         f"scenes) from the shipped (a)."), "",
-        "## The shipped checkpoints on fresh scenes (standard split)", "",
-        "| model | parameters | time per scene | peak memory | PSNR | SSIM | depth AbsRel |",
-        "|---|---|---|---|---|---|---|"]
-    for variant, s in summaries.items():
+# ---- the demo's report.md ------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DemoResults:
+    """What the demo's ``report.md`` reports: the results of its steps (``run_demo``)."""
+
+    out: Path  # the demo's folder: report.md goes there; renders and bench tables are read there
+    budget: Budget
+    budget_name: str  # "full" or "quick"
+    summaries: dict  # "base" and each variant's shipped checkpoint -> evaluate()'s summary
+    timings: dict  # stage -> seconds
+    worst: dict  # variant -> worst_cases(): per split the worst scene's sheet and its PSNR
+    bench: dict  # the demo's speed/accuracy summary (bench.write_results)
+    stable: dict  # variant -> stability() of its fine-tuning run
+    verdict: list[Comparison]  # the paired differences against (a) continued
+    tuned: dict  # variant -> evaluate()'s summary after the brief fine-tuning
+    provenance: dict  # the machine, libraries and data (evaluation.provenance)
+    manifest: dict  # shipped checkpoint name -> its checkpoints/manifest.json entry
+    registered: dict | None = None  # the shipped multi-seed verdict (checkpoints/verdict.json)
+
+
+def write_report(results: DemoResults) -> Path:
+    """``report.md`` in ``results.out``, from the results of the demo's steps and the files
+    they wrote (renders, ``bench_demo/bench.md``, ``bench/bench.md``): a section each."""
+    sections = (intro_lines, shipped_lines, verdict_lines, split_lines, worst_case_lines,
+                fine_tuning_lines, speed_lines, novel_view_lines, provenance_lines,
+                wall_time_lines)
+    lines = [line for section in sections for line in section(results)]
+    path = results.out / "report.md"
+    with atomic_open(path, "w") as f:
+        f.write("\n".join(lines))  # every section ends with an empty line: the final newline
+    return path
+
+
+# Each section is a list of lines that ends with an empty one.
+
+def intro_lines(r: DemoResults) -> list[str]:
+    """The title and what the demo did."""
+    b = r.budget
+    return ["# usplat-dr demo report", "",
+            (f"Budget `{r.budget_name}`: {b.test_scenes} fresh held-out scenes rendered by "
+             f"Mitsuba ({b.frames} frames, {b.size}x{b.size}; a seed none of the checkpoints was "
+             f"trained or tested on), the shipped `{PRESET}` checkpoints evaluated on them with "
+             f"the field's protocol, and a brief fine-tuning ({b.steps} steps on "
+             f"{b.train_scenes} other scenes) from the shipped (a)."), ""]
+
+
+def shipped_lines(r: DemoResults) -> list[str]:
+    """The shipped checkpoints on the standard split: size, speed, memory and accuracy."""
+    lines = ["## The shipped checkpoints on fresh scenes (standard split)", "",
+             "| model | parameters | time per scene | peak memory | PSNR | SSIM | depth AbsRel |",
+             "|---|---|---|---|---|---|---|"]
+    for variant, s in r.summaries.items():
         std = s["splits"]["standard"]
-        lines.append(f"| {_label(variant, manifest)} | {s['parameters'] / 1e6:.2f}M | "
+        lines.append(f"| {_label(variant, r.manifest)} | {s['parameters'] / 1e6:.2f}M | "
                      f"{1000 * s['time_per_scene_s']:.0f} ms | {s['peak_memory_gib']:.2f} GiB "
                      f"| {std['psnr']:.2f} | {std['ssim']:.3f} | {std['abs_rel']:.3f} |")
-    lines += ["",
-              (f"(b) and (c) were initialised from `{BASE}` (zero-initialised hypernetwork "
-               f"outputs: they start exactly at it) and fine-tuned for the same steps, seed and "
-               f"data as (a) continued, the control they are paired with. Time per scene: 2 "
-               f"context views in, Gaussians and renders for every target (CPU, 2 threads). "
-               f"LPIPS: unavailable (no VGG/LPIPS weight files in the demo). Training recipes "
-               f"and data: `checkpoints/manifest.json`."), "",
-              "## Verdict on view conditioning (these scenes, the shipped seed)", "",
-              (f"Paired per-scene differences against (a) continued over the {test} fresh "
-               "scenes (the stress splits hold the scenes that qualify), with bootstrap 95% "
-               "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
-               "variation, so no row here is a verdict; the multi-seed one "
-               "(`train/studies/verdict_study.py`) follows the table, and "
-               "train/studies/README.md (\"View conditioning as the paper has it\") has it in "
-               "full with the oracle per layer "
-               "(`train/studies/oracle_delta.py`)."), "", verdict_table(verdict), "",
-              "![verdict](verdict.png)", "", *registered_lines(registered),
-              "## Per split (PSNR / SSIM / depth AbsRel)", "",
-              "| split | scenes | " + " | ".join(_label(v, manifest) for v in summaries) + " |",
-              "|---|---|" + "---|" * len(summaries)]
-    first = next(iter(summaries.values()))
+    return [*lines, "",
+            (f"(b) and (c) were initialised from `{BASE}` (zero-initialised hypernetwork "
+             f"outputs: they start exactly at it) and fine-tuned for the same steps, seed and "
+             f"data as (a) continued, the control they are paired with. Time per scene: 2 "
+             f"context views in, Gaussians and renders for every target (CPU, 2 threads). "
+             f"LPIPS: unavailable (no VGG/LPIPS weight files in the demo). Training recipes "
+             f"and data: `checkpoints/manifest.json`."), ""]
+
+
+def verdict_lines(r: DemoResults) -> list[str]:
+    """The paired differences against (a) continued on these scenes, then the shipped
+    multi-seed verdict (``registered_lines``)."""
+    test = next(iter(r.summaries.values()))["splits"]["standard"]["scenes"]
+    return ["## Verdict on view conditioning (these scenes, the shipped seed)", "",
+            (f"Paired per-scene differences against (a) continued over the {test} fresh "
+             "scenes (the stress splits hold the scenes that qualify), with bootstrap 95% "
+             "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
+             "variation, so no row here is a verdict; the multi-seed one "
+             "(`train/studies/verdict_study.py`) follows the table, and "
+             "train/studies/README.md (\"View conditioning as the paper has it\") has it in "
+             "full with the oracle per layer "
+             "(`train/studies/oracle_delta.py`)."), "", verdict_table(r.verdict), "",
+            "![verdict](verdict.png)", "", *registered_lines(r.registered)]
+
+
+def split_lines(r: DemoResults) -> list[str]:
+    """PSNR / SSIM / AbsRel of every shipped checkpoint per split."""
+    lines = ["## Per split (PSNR / SSIM / depth AbsRel)", "",
+             "| split | scenes | " + " | ".join(_label(v, r.manifest) for v in r.summaries)
+             + " |",
+             "|---|---|" + "---|" * len(r.summaries)]
+    first = next(iter(r.summaries.values()))
     for split, m in first["splits"].items():
-        cells = [_cells(s["splits"][split]) for s in summaries.values()]
+        cells = [_cells(s["splits"][split]) for s in r.summaries.values()]
         lines.append(f"| {split} | {m['scenes']} | " + " | ".join(cells) + " |")
-    lines += ["", "### Worst cases", "",
-              ("Per split, the held-out scene with the lowest PSNR (context views, ground truth, "
-               "prediction, depth per target).")]
-    for split in first["splits"]:
-        for variant, w in worst.items():
+    return [*lines, ""]
+
+
+def worst_case_lines(r: DemoResults) -> list[str]:
+    """Per split and variant, the sheet of the held-out scene with the lowest PSNR."""
+    lines = ["### Worst cases", "",
+             ("Per split, the held-out scene with the lowest PSNR (context views, ground truth, "
+              "prediction, depth per target).")]
+    for split in next(iter(r.summaries.values()))["splits"]:
+        for variant, w in r.worst.items():
             if split in w:
                 lines.append(f"\n{VARIANTS[variant]}, {split}: {w[split].stem} "
                              f"({w[split + '_psnr']:.2f} dB)\n\n![{split}]"
-                             f"({w[split].relative_to(out)})")
-    lines += ["", "## Fine-tuning briefly from the shipped (a)", "",
-              (f"{b.steps} steps of (a) and (c) from `{BASE}` on the demo's {b.train_scenes} "
-               f"training scenes (learning rate {FINETUNE_LR:g}, depth supervision as shipped; "
-               "(c)'s view-specific ResNet18 starts from random weights, as in the shipped "
-               "(c): no ImageNet weight file here), "
-               "evaluated on the standard split: it shows that training runs; at this length it "
-               "says nothing about the verdict."), "",
-              "| model | PSNR / SSIM / AbsRel before | after |", "|---|---|---|"]
-    for variant, s in tuned.items():
-        lines.append(f"| {VARIANTS[variant]} | {_cells(summaries['base']['splits']['standard'])}"
-                     f" | {_cells(s['splits']['standard'])} |")
-    lines += ["", "![training curves](training_curves.png)", "", *stability_lines(stable),
-              "## Speed against accuracy", "",
-              ("The shipped (a) continued and (c), measured by `usplat bench`'s code on the "
-               "standard split: Gaussian budgets (pruning per target before rasterising) at "
-               f"{b.size}x{b.size} and a smaller render size."), "",
-              "![speed against accuracy](bench_demo/bench.png)", "",
-              (out / "bench_demo" / "bench.md").read_text().rstrip(), "",
-              ("Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; "
-               "safe: it costs less than 0.05 dB). Off by default at inference: on CPU it costs "
-               "more time than it saves at every size measured (train/bench/README.md, "
-               "\"Pruning that pays\")."), "",
-              "| pruning | worst PSNR change | kept | safe |", "|---|---|---|---|"]
-    for name, p in sorted(bench["pruning"].items()):
+                             f"({w[split].relative_to(r.out)})")
+    return [*lines, ""]
+
+
+def fine_tuning_lines(r: DemoResults) -> list[str]:
+    """The brief fine-tuning: accuracy before and after, the training curves, and the
+    gradient norms' stability (``stability_lines``)."""
+    b = r.budget
+    lines = ["## Fine-tuning briefly from the shipped (a)", "",
+             (f"{b.steps} steps of (a) and (c) from `{BASE}` on the demo's {b.train_scenes} "
+              f"training scenes (learning rate {FINETUNE_LR:g}, depth supervision as shipped; "
+              "(c)'s view-specific ResNet18 starts from random weights, as in the shipped "
+              "(c): no ImageNet weight file here), "
+              "evaluated on the standard split: it shows that training runs; at this length it "
+              "says nothing about the verdict."), "",
+             "| model | PSNR / SSIM / AbsRel before | after |", "|---|---|---|"]
+    before = _cells(r.summaries["base"]["splits"]["standard"])
+    for variant, s in r.tuned.items():
+        lines.append(f"| {VARIANTS[variant]} | {before} | {_cells(s['splits']['standard'])} |")
+    return [*lines, "", "![training curves](training_curves.png)", "",
+            *stability_lines(r.stable)]
+
+
+def speed_lines(r: DemoResults) -> list[str]:
+    """Speed against accuracy: the demo's bench table, its pruning verdicts and, when
+    ``usplat bench`` ran in the same folder, its full table."""
+    lines = ["## Speed against accuracy", "",
+             ("The shipped (a) continued and (c), measured by `usplat bench`'s code on the "
+              "standard split: Gaussian budgets (pruning per target before rasterising) at "
+              f"{r.budget.size}x{r.budget.size} and a smaller render size."), "",
+             "![speed against accuracy](bench_demo/bench.png)", "",
+             (r.out / "bench_demo" / "bench.md").read_text().rstrip(), "",
+             ("Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; "
+              "safe: it costs less than 0.05 dB). Off by default at inference: on CPU it costs "
+              "more time than it saves at every size measured (train/bench/README.md, "
+              "\"Pruning that pays\")."), "",
+             "| pruning | worst PSNR change | kept | safe |", "|---|---|---|---|"]
+    for name, p in sorted(r.bench["pruning"].items()):
         lines.append(f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | "
                      f"{p['kept_fraction']:.2f} | {'yes' if p['safe'] else 'no'} |")
-    full_bench = out / "bench" / "bench.md"
+    full_bench = r.out / "bench" / "bench.md"
     if full_bench.is_file():
         lines += ["", "### Full `usplat bench` (all presets)", "",
                   "![usplat bench](bench/bench.png)", "", full_bench.read_text().rstrip()]
-    lines += ["", "## Novel views", "",
-              "Each row: context views, ground truth, prediction, predicted depth."]
+    return [*lines, ""]
+
+
+def novel_view_lines(r: DemoResults) -> list[str]:
+    """The first two renders of the standard split of (a) continued and (c)."""
+    lines = ["## Novel views", "",
+             "Each row: context views, ground truth, prediction, predicted depth."]
     for variant in ("baseline", "full"):
-        renders = sorted((out / f"eval_shipped_{variant}" / "renders" / "standard")
+        renders = sorted((r.out / f"eval_shipped_{variant}" / "renders" / "standard")
                          .glob("*.png"))[:2]
-        for r in renders:
-            lines.append(f"\n{VARIANTS[variant]}, {r.stem}:\n\n![{r.stem}]"
-                         f"({r.relative_to(out)})")
-    lines += ["", "## Where these numbers came from", "",
-              "| | |", "|---|---|",
-              *[f"| {k} | {v} |" for k, v in prov.items() if k != "data"],
-              *[f"| data `{k}` | sha256 `{v}` |" for k, v in prov["data"].items()],
-              *[f"| checkpoint `{n}` | sha256 `{e['sha256'][:16]}...`, {e['steps']} steps, "
-                f"data: {e['data']} |" for n, e in manifest.items()],
-              "",
-              ("Same command, same machine kind: docs/reproducibility.md says what is "
-               "pinned (USPLAT_PORTABLE) and what can still differ."),
-              "", "## Wall time", "", "| stage | seconds |", "|---|---|"]
-    lines += [f"| {k} | {v:.0f} |" for k, v in timings.items()]
-    path = out / "report.md"
-    with atomic_open(path, "w") as f:
-        f.write("\n".join(lines) + "\n")
-    return path
+        for render in renders:
+            lines.append(f"\n{VARIANTS[variant]}, {render.stem}:\n\n![{render.stem}]"
+                         f"({render.relative_to(r.out)})")
+    return [*lines, ""]
+
+
+def provenance_lines(r: DemoResults) -> list[str]:
+    """The machine, libraries, data hashes and shipped checkpoints the numbers came from."""
+    prov = r.provenance
+    return ["## Where these numbers came from", "",
+            "| | |", "|---|---|",
+            *[f"| {k} | {v} |" for k, v in prov.items() if k != "data"],
+            *[f"| data `{k}` | sha256 `{v}` |" for k, v in prov["data"].items()],
+            *[f"| checkpoint `{n}` | sha256 `{e['sha256'][:16]}...`, {e['steps']} steps, "
+              f"data: {e['data']} |" for n, e in r.manifest.items()],
+            "",
+            ("Same command, same machine kind: docs/reproducibility.md says what is "
+             "pinned (USPLAT_PORTABLE) and what can still differ."), ""]
+
+
+def wall_time_lines(r: DemoResults) -> list[str]:
+    """The seconds each stage of the demo took."""
+    return ["## Wall time", "", "| stage | seconds |", "|---|---|",
+            *[f"| {k} | {v:.0f} |" for k, v in r.timings.items()], ""]
 
 
 def pareto(points: list[tuple[float, float]]) -> list[int]:

@@ -38,7 +38,10 @@ from usplat_dr.render.prune import PruneSettings
 
 log = logging.getLogger(__name__)
 
-VARIANTS = ("baseline", "agnostic", "full")
+#: The variants, each with its label in the paper's tables and our reports: (a) the primary
+#: network alone, (b) with view-agnostic weights, (c) with view-specific ones as well.
+VARIANTS = {"baseline": "(a) primary network", "agnostic": "(b) + view-agnostic",
+            "full": "(c) UniqueSplat"}
 HEADS = ("to_gaussians", "to_disparity")
 #: Layers that can take generated weights: the convolutions of the two heads.
 INJECTABLE = tuple(f"{h}.{i}" for h in HEADS for i in (0, 2))
@@ -92,7 +95,7 @@ class UniqueSplatCfg:
                             "resnet_stages": 4, "feature_dim": 2048, "proj_samples": 2048,
                             "proj_stride": 256, "phi_channels": 4096})
         if self.variant not in VARIANTS:
-            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+            raise ValueError(f"variant must be one of {tuple(VARIANTS)}, got {self.variant!r}")
         bad = [t for t in self.target_layers if t not in INJECTABLE]
         if bad or not self.target_layers or len(set(self.target_layers)) != len(
                 self.target_layers):

@@ -51,7 +51,7 @@ def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_colo
         if t.device != device:
             raise ValueError(f"{name} must be on {device} like extrinsics, got {t.device}")
     check_shapes(image_shape, {name: t.shape for name, t in named.items()})
-    flags = _value_flags(list(named.values()), near, far)
+    flags = value_flags(list(named.values()), near, far)
     for ok, name in zip(flags, named):
         if not ok:
             raise ValueError(f"{name} must be finite, got NaN or Inf values")
@@ -62,14 +62,21 @@ def check_inputs(extrinsics, intrinsics, near, far, image_shape, background_colo
                          f"far={far.detach().cpu().tolist()}")
 
 
-def _value_flags(tensors: list[Tensor], near: Tensor, far: Tensor) -> list[bool]:
-    """Finite per tensor, then near > 0 and far > near, as Python booleans.
+def value_flags(tensors: list[Tensor], near: Tensor, far: Tensor) -> list[bool]:
+    """Finite per tensor, then near > 0 and far > near, as Python booleans: the value checks
+    of ``check_inputs`` (which names what failed), on their own (train/bench/rasterizer.py
+    times them).
 
     On the CPU the checks run in NumPy on the tensors' own memory: a torch reduction over a
     few hundred thousand values is split across torch's OpenMP threads, and on a loaded
     2-core machine waiting for the second core cost about 21 ms per call; NumPy takes
     0.1-0.4 ms (train/bench/README.md, "The torch bridge"). On a GPU the checks stay on the
     device with one host read for all of them.
+
+    Examples:
+        >>> near, far = torch.ones(1), torch.full((1,), 2.0)
+        >>> value_flags([torch.zeros(2), torch.tensor([float("nan")])], near, far)
+        [True, False, True, True]
     """
     if near.device.type == "cpu":
         arrays = [t.detach().numpy() for t in tensors]

@@ -71,6 +71,19 @@ class PruneSettings:
         return "+".join(parts)
 
 
+#: Named settings, from rendering every Gaussian (``"all"``: no pruning) through exact culling
+#: to merging and budgets: the Gaussian-budget axis of ``usplat bench``, also timed by
+#: train/bench/prune.py.
+PRUNES: dict[str, PruneSettings | None] = {
+    "all": None,
+    "cull": PruneSettings(),
+    "cull+merge1px": PruneSettings(merge=True),
+    "cull+merge2px": PruneSettings(merge=True, merge_pixels=2.0),
+    "keep50%": PruneSettings(keep_fraction=0.5),
+    "keep25%": PruneSettings(keep_fraction=0.25),
+}
+
+
 @dataclass
 class Pruned:
     """The pruned, padded Gaussians ([B, K, ...]) and ``counts`` [B]: how many are real."""

@@ -1,9 +1,12 @@
 """Checkpoint files of training: a model from one (``load_model``), the primary network of a
-trained (a) as the start of (b) and (c) (``init_from_checkpoint``), and a shippable copy of
-one (``export_weights``)."""
+trained (a) as the start of (b) and (c) (``init_from_checkpoint``), a shippable copy of one
+(``export_weights``), and the registry of the shipped ones (``CHECKPOINTS``, its
+``manifest.json`` read by ``shipped_checkpoints``, its ``verdict.json`` by
+``registered_verdict``)."""
 
 import contextlib
 import dataclasses
+import json
 import logging
 import os
 from pathlib import Path
@@ -175,3 +178,37 @@ def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: 
                "step": state.get("step", 0), "provenance": state.get("provenance", {}),
                "metadata": metadata or {}}
     return torch_save(shipped, out)
+
+
+# ---- The shipped checkpoints ----
+
+#: Where the shipped checkpoints are: package data in a wheel install (usplat_dr/checkpoints,
+#: pyproject.toml maps the repository's checkpoints/ there), else the repository's
+#: checkpoints/ folder (a source checkout or an editable install).
+CHECKPOINTS = next((p for p in (Path(__file__).parents[1] / "checkpoints",
+                                Path(__file__).parents[2] / "checkpoints") if p.is_dir()),
+                   Path(__file__).parents[2] / "checkpoints")
+#: The shipped checkpoints ``usplat demo`` and ``usplat bench`` read (names in
+#: ``CHECKPOINTS/manifest.json``, made by train/ship_checkpoint.py): the trained primary
+#: network, and per variant the model fine-tuned from it for the same steps (for (a): trained
+#: on, the control the others are paired with).
+BASE = "tiny_baseline"
+SHIPPED = {"baseline": "tiny_baseline_continued", "agnostic": "tiny_agnostic",
+           "full": "tiny_full"}
+
+
+def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
+    """The multi-seed verdict shipped beside the checkpoints (``verdict.json``: the
+    pre-registered rule's label per held-out set), or None where there is none."""
+    path = root / "verdict.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def shipped_checkpoints(root: Path = CHECKPOINTS) -> dict[str, Path]:
+    """``{manifest name: file}`` of the shipped checkpoints, checked against the manifest."""
+    manifest = root / "manifest.json"
+    if not manifest.is_file():
+        raise FileNotFoundError(f"no {manifest}: the demo starts from the shipped checkpoints "
+                                f"(train them with train/ship_checkpoint.py; see README)")
+    entries = json.loads(manifest.read_text())
+    return {e["name"]: root / e["file"] for e in entries}

@@ -5,9 +5,9 @@ defaults are the only ones: ``usplat_dr/configs/base.yaml`` documents them and s
 
 ``RootCfg.load(cfg)`` checks a loaded config (``usplat_dr.config.load_config``): an unknown key,
 a value of the wrong type or out of range (``RANGES``) is a ``ConfigError`` naming the key and
-the file or command-line override that set it. The ``dataset`` section stays a mapping (its
-keys depend on the view sampler), checked the same way by
-``usplat_dr.data.dataset.check_dataset_section``.
+the file or command-line override that set it. The ``dataset`` section is
+``usplat_dr.data.dataset.DatasetSectionCfg`` (its view sampler chosen by
+``dataset.view_sampler.name``), loaded and checked the same way, once.
 """
 
 import dataclasses
@@ -16,7 +16,7 @@ import os
 from dataclasses import dataclass, field
 
 from usplat_dr.config import ConfigError, load_typed, where_set
-from usplat_dr.data.dataset import check_dataset_section
+from usplat_dr.data.dataset import DatasetSectionCfg
 from usplat_dr.data.view_sampler import ViewSamplerBoundedCfg
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.uniquesplat import PRESETS, UniqueSplatCfg
@@ -159,7 +159,7 @@ class RootCfg:
     keep_cores_awake: bool | None = None
     name: str | None = None  # a label for the run
     model: ModelSection = field(default_factory=ModelSection)
-    dataset: dict = field(default_factory=dict)  # checked by check_dataset_section
+    dataset: DatasetSectionCfg = field(default_factory=DatasetSectionCfg)
     data_loader: DataLoaderCfg = field(default_factory=DataLoaderCfg)
     optimizer: OptimizerCfg = field(default_factory=OptimizerCfg)
     loss: LossCfg = field(default_factory=LossCfg)
@@ -178,8 +178,7 @@ class RootCfg:
             if not ok(value):
                 raise ConfigError(f"{key}={value!r} is out of range (set in "
                                   f"{where_set(origins, key)}): {requirement}")
-        sampler, _ = check_dataset_section(root.dataset, "train", origins)
-        check_sampler_ranges(sampler, origins)
+        check_sampler_ranges(root.dataset.view_sampler, origins)
         return root
 
 

@@ -13,7 +13,13 @@ stops at once, naming the last checkpoint (``TrainingStopped``).
 A run holds its ``output_dir`` (``run_folder_lock``): a second run there stops at start-up,
 naming the first's pid; on taking it, the temporary files of writes a killed run left are
 removed. ``metrics.csv`` is rewritten atomically on start (a kill never loses its rows), and a
-full disk is a ``DiskFull`` naming the file.
+full disk is a ``DiskFull`` naming the file (``usplat_dr.training.run_log``, which also holds
+TensorBoard and the progress bar). The loss terms are in ``usplat_dr.training.losses``.
+
+``fit()`` is the loop: the per-step work (``next_step``), then the after-step hook
+(``after_step``: the non-finite stop, the log, the checkpoint and validation cadences, the
+signal stop and its vote across ranks), with the run folder, the signal handlers, the cores
+kept awake and the run log held by one ``contextlib.ExitStack``.
 
 Under torchrun every rank reads its own shard of the data (``usplat_dr.data.dataset``), takes
 ``data_loader.batch_size`` examples a step (the global batch is ranks x batch_size) and steps
@@ -23,9 +29,7 @@ run with one message naming it (``usplat_dr.training.distributed.rank_failure``)
 """
 
 import contextlib
-import csv
 import dataclasses
-import errno
 import fcntl
 import logging
 import math
@@ -33,7 +37,6 @@ import os
 import random
 import re
 import signal
-import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -43,7 +46,6 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, default_collate
-from tqdm import tqdm
 
 from usplat_dr.config import ConfigError
 from usplat_dr.data.dataset import ChunkDataset, dataset_from_section
@@ -51,10 +53,8 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import StepTracker
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.lpips import LPIPS
-from usplat_dr.evaluation.protocol import depth_scored_pixels
 from usplat_dr.evaluation.provenance import provenance
-from usplat_dr.geometry.cameras import pixel_centres
-from usplat_dr.io import UntrustedCheckpointError, atomic_open, torch_save
+from usplat_dr.io import UntrustedCheckpointError, torch_save
 from usplat_dr.training import cores as _cores
 from usplat_dr.training.checkpoints import read_usplat_checkpoint
 from usplat_dr.training.config import RootCfg, model_from_config
@@ -66,44 +66,14 @@ from usplat_dr.training.distributed import (
     set_rng_state,
     setup_distributed,
 )
+from usplat_dr.training.losses import training_loss
+from usplat_dr.training.run_log import RunLog, disk_full_names
 
 log = logging.getLogger(__name__)
 
 class TrainingStopped(RuntimeError):
     """Training stopped on purpose (non-finite steps); the message says why and where the last
     good checkpoint is."""
-
-
-#: The errors of a write that found no room: a full disk, a full quota, a file-size limit
-#: (``ulimit -f``, with SIGXFSZ ignored as batch schedulers do).
-FULL_DISK = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-
-
-class DiskFull(OSError):
-    """A write of the run failed for a full disk (``errno.ENOSPC``); the message names the file
-    and the fix (the atomic writers leave the file's previous version intact)."""
-
-    def __init__(self, path: str | os.PathLike):
-        super().__init__(errno.ENOSPC, f"disk full (or a quota or file-size limit): cannot write "
-                         f"{path} (its previous version "
-                         f"is intact): free space on that disk or choose another output_dir, "
-                         f"then rerun with --resume", str(path))
-
-    def __str__(self) -> str:
-        return self.strerror
-
-
-@contextlib.contextmanager
-def disk_full_names(path: str | os.PathLike) -> Iterator[None]:
-    """Turn an ``OSError(ENOSPC)`` inside the block into a ``DiskFull`` naming ``path``."""
-    try:
-        yield
-    except DiskFull:
-        raise
-    except OSError as e:
-        if e.errno not in FULL_DISK:
-            raise
-        raise DiskFull(path) from e
 
 
 #: Messages of ``ValueError``s that mean non-finite values met in a step (the rasteriser's
@@ -192,44 +162,6 @@ def run_folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
             os.close(entry[0])
 
 
-class MetricsLog:
-    """``metrics.csv``, a row per logged step. Opened for a run at ``step``, it keeps the rows
-    of the steps up to ``step`` (a resumed run redoes the later ones) by an atomic rewrite, so a
-    kill at any moment leaves every kept row in the file; new rows are appended and flushed one
-    at a time. A full disk is a ``DiskFull`` naming the file."""
-
-    def __init__(self, path: Path, fields: list[str], step: int):
-        self.path = path
-        rows = self.kept_rows(path, step)
-        with disk_full_names(path):
-            with atomic_open(path, "w") as f:
-                writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
-                writer.writeheader()
-                writer.writerows(rows)
-            self.file = open(path, "a", newline="")  # noqa: SIM115 (closed by close())
-        self.writer = csv.DictWriter(self.file, fieldnames=fields, extrasaction="ignore")
-
-    @staticmethod
-    def kept_rows(path: Path, step: int) -> list[dict]:
-        """The complete rows of ``path`` (none when it does not exist) at steps <= ``step``; a
-        row cut short (a power cut mid-append) is dropped."""
-        if not path.exists():
-            return []
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-        return [r for r in rows if None not in r and None not in r.values()
-                and (r.get("step") or "").isdigit() and int(r["step"]) <= step]
-
-    def write(self, row: dict) -> None:
-        with disk_full_names(self.path):
-            self.writer.writerow(row)
-            self.file.flush()
-
-    def close(self) -> None:
-        with disk_full_names(self.path):
-            self.file.close()
-
-
 def adam(params, lr: float) -> torch.optim.Adam:
     """Adam, fused where this torch has the fused kernel for the parameters' device (one
     kernel for all parameters: 31 -> 14 ms a step for the tiny preset's 1.7M parameters on
@@ -310,48 +242,6 @@ class Batches:
                           "above: too few frames for the view sampler, or every scene skipped)")
 
 
-def depth_loss(aux: dict, depth: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
-    """Depth supervision of the context views: mean |log d_pred - log d_true| over the pixels
-    with a finite positive ground-truth depth, on the refined and on the coarse depth
-    (``aux``'s ``context_depths`` / ``context_coarse_depths``).
-
-    ``depth`` [B, V, H, W] is camera-space z (synthetic sets carry it, +inf on a miss), while
-    MVSplat's depth is the distance along the pixel's unit ray (the adapter places a Gaussian
-    at origin + d * direction / |direction|), so z is converted: d = z |K^-1 (x, y, 1)| at
-    the pixel centre (up to 15% apart at the corners of a 60-degree view). The log error is
-    scale-free (for small errors it is AbsRel), so near and far scenes weigh alike; the coarse
-    term keeps a gradient where the refined depth is clamped to [near, far] (the clamp
-    passes none)."""
-    b, v, h, w = depth.shape
-    xy1 = torch.cat([pixel_centres(h, w, depth.device), depth.new_ones(h * w, 1)], -1)
-    ray = torch.einsum("bvij,rj->bvri", intrinsics.inverse(), xy1).norm(dim=-1)
-    valid = torch.isfinite(depth) & (depth > 0)
-    if not valid.any():
-        return depth.new_zeros(())
-    log_true = (depth * ray.view(b, v, h, w))[valid].log()
-    total = depth.new_zeros(())
-    for key in ("context_depths", "context_coarse_depths"):
-        total = total + (aux[key][valid].log() - log_true).abs().mean()
-    return total
-
-
-def target_depth_loss(depth: torch.Tensor, alpha: torch.Tensor,
-                      true_z: torch.Tensor) -> torch.Tensor:
-    """Depth supervision of the rendered target views: mean |log(depth / alpha) - log z| over
-    the pixels with a finite positive ground-truth z that the rendering covers (alpha > 0.5,
-    the pixels the evaluation's AbsRel scores; ``evaluation.protocol.depth_metrics``).
-
-    ``depth`` and ``alpha`` [B, N, H, W] are the rasteriser's alpha-weighted camera-space z and
-    its opacity (gradients reach the Gaussians through both); ``true_z`` [B, N, H, W] the
-    synthetic ground truth (+inf on a miss). Zero when no pixel qualifies."""
-    valid = depth_scored_pixels(alpha.detach(), true_z)
-    if not valid.any():
-        return depth.new_zeros(())
-    # alpha > 0.5 on valid pixels; the clamp keeps log finite where a depth is exactly 0
-    pred = (depth[valid] / alpha[valid]).clamp(min=1e-6)
-    return (pred.log() - true_z[valid].log()).abs().mean()
-
-
 def differing_fields(saved: dict, current: dict, prefix: str = "") -> list[tuple]:
     """``(dotted name, saved value, current value)`` of the fields that both model configs
     have and set differently (lists and tuples alike). ``resnet_weights`` is not compared: a
@@ -419,15 +309,13 @@ class Trainer:
             anneal_strategy="cos")
         # What this run ran on (data content hash, library versions, CPU, threads): saved
         # in every checkpoint, so runs that differ can be told apart.
-        self.provenance = (provenance(c.dataset.get("roots") or ())
-                           if self.rank == 0 else {})
+        self.provenance = provenance(c.dataset.roots) if self.rank == 0 else {}
         self.step = 0
         self.skipped = 0
         self.saved_step = None  # the step of this run's checkpoint
         self.consecutive_bad = 0
         self._stop_signal = None
         self._val_batch = None
-        self._metrics = self._board = self._bar = None  # rank 0's logs, while fit() runs
 
     # -- checkpoints --
     @property
@@ -571,30 +459,9 @@ class Trainer:
     def loss(self, out, batch: dict) -> tuple[torch.Tensor, dict]:
         """MSE on the targets, + LPIPS after ``loss.lpips_after_step``, + the depth terms
         (``loss.depth`` on the context views, ``loss.target_depth`` on the rendered targets;
-        until ``loss.depth_until_step``) where the data has depth."""
-        pred = out.color
-        target = batch["target"]["image"].to(self.device)
-        mse = (pred - target).square().mean()
-        lc = self.config.loss
-        loss = lc.mse * mse
-        parts = {"mse": mse.item()}
-        until = lc.depth_until_step
-        if (lc.depth > 0 and (until is None or self.step < until)
-                and "depth" in batch["context"]):
-            d = depth_loss(out.aux, batch["context"]["depth"].to(self.device),
-                           batch["context"]["intrinsics"].to(self.device))
-            loss = loss + lc.depth * d
-            parts["depth"] = d.item()
-        if (lc.target_depth > 0 and (until is None or self.step < until)
-                and "depth" in batch["target"]):
-            d = target_depth_loss(out.depth, out.alpha, batch["target"]["depth"].to(self.device))
-            loss = loss + lc.target_depth * d
-            parts["target_depth"] = d.item()
-        if self.lpips is not None and self.step >= lc.lpips_after_step:
-            lp = self.lpips(pred.flatten(0, 1), target.flatten(0, 1)).mean()
-            loss = loss + lc.lpips * lp
-            parts["lpips"] = lp.item()
-        return loss, parts
+        until ``loss.depth_until_step``) where the data has depth
+        (``usplat_dr.training.losses.training_loss``)."""
+        return training_loss(out, batch, self.config.loss, self.step, self.device, self.lpips)
 
     #: Parameter groups whose gradient norms (before clipping) go into metrics.csv: the
     #: primary network, the view-agnostic branch (e_a, H_a), the view-specific hypernetwork
@@ -736,22 +603,20 @@ class Trainer:
 
     def fit(self) -> dict:
         """Train to ``train.steps`` (or a signal), logging, checkpointing and validating
-        on the way; returns the last step's statistics. Holds the run folder meanwhile."""
-        with self.hold_folder():
-            old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-            keeper = None
-            if _cores.wanted(self.config.keep_cores_awake, torch.get_num_threads(),
-                             self.device.type):
-                keeper = _cores.CoreKeeper().start()
-            try:
-                self._open_logs()
-                last = self._loop()
-            finally:
-                if keeper is not None:
-                    keeper.stop()
-                for s, h in old.items():
-                    signal.signal(s, h)
-                self._close_logs()
+        on the way (``after_step``); returns the last step's statistics. Meanwhile it holds
+        the run folder, catches SIGINT/SIGTERM, keeps the cores awake where wanted and keeps
+        the run log open; it lets them go in the reverse order however the loop ends."""
+        with contextlib.ExitStack() as held:
+            held.enter_context(self.hold_folder())
+            held.enter_context(self._signals_caught())
+            held.enter_context(self._cores_awake())
+            run_log = held.enter_context(self._run_log())
+            last = {}  # the last good step's statistics
+            while self.step < self.config.train.steps:
+                stats = self.next_step()
+                last = stats if stats is not None else last
+                if self.after_step(stats, last, run_log):
+                    break
         digest = parameter_digest(self.model)
         if len(set(gather(digest))) > 1:  # DDP keeps them equal; if not, say so
             log.error("rank %d: the ranks hold different parameters after step %d (digests "
@@ -760,68 +625,64 @@ class Trainer:
         return {"step": self.step, "skipped": self.skipped, "rank": self.rank,
                 "params_sha256": digest, **last}
 
-    def _open_logs(self) -> None:
-        """metrics.csv, TensorBoard (when installed) and the progress bar, on rank 0."""
-        self._metrics = self._board = self._bar = None
+    @contextlib.contextmanager
+    def _signals_caught(self) -> Iterator[None]:
+        """SIGINT and SIGTERM call ``_on_signal`` in the block (the run saves and stops after
+        the step: ``after_step``); the handlers from before come back after it."""
+        old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    def _cores_awake(self) -> contextlib.AbstractContextManager:
+        """Idle-priority spinners (``CoreKeeper``) for the block where ``keep_cores_awake``
+        wants them (``usplat_dr.training.cores.wanted``), else a context that does nothing."""
+        if _cores.wanted(self.config.keep_cores_awake, torch.get_num_threads(),
+                         self.device.type):
+            return _cores.CoreKeeper()
+        return contextlib.nullcontext()
+
+    def _run_log(self) -> contextlib.AbstractContextManager:
+        """Rank 0's ``RunLog`` from this step on (metrics.csv, TensorBoard, the progress bar);
+        on the other ranks, which log nothing, a context that gives ``None``."""
         if self.rank != 0:
-            return
-        self._metrics = MetricsLog(self.out / "metrics.csv", list(self.METRICS), self.step)
-        try:  # TensorBoard when it is installed (optional)
-            from torch.utils.tensorboard import SummaryWriter
-
-            self._board = SummaryWriter(str(self.out / "tensorboard"), purge_step=self.step)
-        except ImportError:
-            pass
-        if self.config.train.progress:
-            self._bar = tqdm(total=self.config.train.steps, initial=self.step, desc="train",
-                             dynamic_ncols=True)
-
-    def _close_logs(self) -> None:
-        for log_file in (self._bar, self._board, self._metrics):
-            if log_file is not None:
-                log_file.close()
-
-    def _loop(self) -> dict:
-        """The steps, up to ``train.steps`` or a signal; returns the last good step's
-        statistics."""
+            return contextlib.nullcontext()
         tc = self.config.train
-        start, t0, last = self.step, time.perf_counter(), {}
-        while self.step < tc.steps:
-            self.step_tracker.set_step(self.step)
-            batch = self.batches.next()
-            if self._val_batch is None:
-                self._val_batch = self.validation_batch(batch)
-            stats = self.train_step(batch)
-            if stats is None:
-                self._stop_if_diverged()
-            self.step += 1
-            if stats is not None:
-                last = stats
-            elapsed = time.perf_counter() - t0
-            self._log(last, (self.step - start) / max(elapsed, 1e-9), elapsed)
-            if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
-                self.save()
-            if self.rank == 0 and (self.step % tc.validate_every == 0
-                                   or self.step == tc.steps):
-                self.validate()
-            if self._stopped_by_signal():
-                break
-        return last
+        return RunLog(self.out, self.METRICS, self.step, tc.steps, tc.log_every, tc.progress)
 
-    def _log(self, last: dict, rate: float, elapsed: float) -> None:
-        """A row of metrics.csv and TensorBoard every ``train.log_every`` steps, and the bar."""
-        if self._metrics is not None and last and (self.step % self.config.train.log_every == 0
-                                                   or self.step == self.config.train.steps):
-            self._metrics.write({"step": self.step, **last, "skipped": self.skipped,
-                                 "steps_per_s": rate, "time_s": elapsed})
-            if self._board is not None:
-                for key, value in last.items():
-                    self._board.add_scalar(f"train/{key}", value, self.step)
-        if self._bar is not None:
-            self._bar.update(1)
-            if last:
-                self._bar.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}",
-                                      skipped=self.skipped)
+    def next_step(self) -> dict | None:
+        """The loop's work for one step: the next batch (the first also picks the validation
+        batch) and ``train_step`` on it; its statistics, ``None`` when it was skipped."""
+        self.step_tracker.set_step(self.step)
+        batch = self.batches.next()
+        if self._val_batch is None:
+            self._val_batch = self.validation_batch(batch)
+        return self.train_step(batch)
+
+    def after_step(self, stats: dict | None, last: dict, run_log: RunLog | None) -> bool:
+        """The after-step hook: what follows ``next_step``, in order; True to stop.
+
+        A skipped step (``stats`` is ``None``) stops the run when the parameters went
+        non-finite or ``train.max_nonfinite`` steps in a row were skipped
+        (``_stop_if_diverged``: before the step counts, so its checkpoint holds the last good
+        state at this step). Then the step counts and ``run_log`` logs it (``last``: the last
+        good step's statistics); a checkpoint every ``train.checkpoint_every`` steps and at the
+        last one; rank 0's validation grid every ``train.validate_every`` steps and at the last
+        one; and after SIGINT/SIGTERM on any rank, a checkpoint and the stop, all ranks after
+        the same step (``_stopped_by_signal``)."""
+        if stats is None:
+            self._stop_if_diverged()
+        self.step += 1
+        if run_log is not None:
+            run_log.log(self.step, last, self.skipped)
+        tc = self.config.train
+        if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
+            self.save()
+        if self.rank == 0 and (self.step % tc.validate_every == 0 or self.step == tc.steps):
+            self.validate()
+        return self._stopped_by_signal()
 
     def _stopped_by_signal(self) -> bool:
         """After a SIGINT/SIGTERM: save and say so (all ranks stop after the same step)."""

@@ -1,9 +1,13 @@
-"""Dense float64 reference of the 3DGS CUDA rasteriser, written from the equations.
+"""Dense reference of the 3DGS CUDA rasteriser in torch, written from the equations: the
+oracle the tests compare every stage of the rasteriser with (tests/render/), and the dense
+baseline of train/bench/rasterizer.py (like gsplat's ``_torch_impl``).
 
 Every Gaussian against every pixel, in depth order, with the reference's rules (scale-invariant
 near cull, EWA with clamped Jacobian and 0.3 dilation, 3-sigma radius, 16x16 tile cut, power > 0
-and alpha < 1/255 skips, 0.99 clamp, stop before T < 1e-4). Autograd gives its gradients.
-Independent of ``usplat_dr.render``: shares no code with it.
+and alpha < 1/255 skips, 0.99 clamp, stop before T < 1e-4). Autograd gives its gradients. It
+takes any float dtype (the tests use float64). Independent of the rest of ``usplat_dr.render``:
+it imports nothing from usplat_dr and shares no code with the rasteriser. P x G memory (pixels
+x Gaussians): small images only.
 """
 
 import math
