@@ -13,7 +13,7 @@ from usplat_dr.data.chunks import (
                                    write_chunk,
                                    write_index,
 )
-from usplat_dr.data.dataset import PRESETS, ChunkDataset, DatasetCfg, Summary, dataset_cfg
+from usplat_dr.data.dataset import DATASET_PRESETS, ChunkDataset, DatasetCfg, Summary, dataset_cfg
 from usplat_dr.data.view_sampler import (
                                    StepTracker,
                                    ViewSamplerAllCfg,
@@ -25,7 +25,8 @@ from usplat_dr.data.view_sampler import (
 )
 
 __all__ = [
-    "PRESETS", "BadChunkError", "BadSceneError", "ChunkDataset", "ChunkWriter", "DatasetCfg",
+    "DATASET_PRESETS", "BadChunkError", "BadSceneError", "ChunkDataset", "ChunkWriter",
+    "DatasetCfg",
     "StepTracker", "Summary", "ViewSamplerAllCfg", "ViewSamplerBoundedCfg",
     "ViewSamplerEvaluationCfg", "ViewSamplingError", "cameras_to_matrices", "dataset_cfg",
     "decode_image", "encode_image", "get_view_sampler", "matrices_to_cameras", "read_chunk",

@@ -92,7 +92,7 @@ class DatasetCfg:
 # docs/field_protocol.md, "Data": RE10K and ACID near 1 / far 100 with 360x640 JPEGs; DTU near
 # 2.125 / far 4.525 (depth 425-905 scaled by 1/200), PNGs of any shape; synthetic sets carry
 # per-scene bounds.
-PRESETS = {
+DATASET_PRESETS = {
     "re10k": dict(near=1.0, far=100.0, skip_bad_shape=True, original_image_shape=(360, 640)),
     "acid": dict(near=1.0, far=100.0, skip_bad_shape=True, original_image_shape=(360, 640)),
     "dtu": dict(near=2.125, far=4.525, skip_bad_shape=False, test_times_per_scene=4),
@@ -108,12 +108,12 @@ def dataset_cfg(name: str, roots, **overrides) -> DatasetCfg:
         >>> cfg.near, cfg.far, cfg.skip_bad_shape
         (2.125, 4.525, False)
     """
-    if name not in PRESETS:
-        raise ValueError(f"name must be one of {sorted(PRESETS)}, got {name!r}")
+    if name not in DATASET_PRESETS:
+        raise ValueError(f"name must be one of {sorted(DATASET_PRESETS)}, got {name!r}")
     if isinstance(roots, (str, Path)):
         roots = [roots]
     return DatasetCfg(roots=tuple(str(r) for r in roots), name=name,
-                      **{**PRESETS[name], **overrides})
+                      **{**DATASET_PRESETS[name], **overrides})
 
 
 #: Scene near/far planes outside this range are skipped: depth is sampled in disparity from
@@ -418,7 +418,7 @@ class DatasetSectionCfg:
         usplat_dr.config.ConfigError: dataset.name='imagenet' must be one of ['acid', ...
     """
 
-    name: str = "re10k"  # PRESETS: the field's near/far and image-shape settings
+    name: str = "re10k"  # DATASET_PRESETS: the field's near/far and image-shape settings
     # dataset folders (one, or a list); checked by dataset_from_section, which needs them
     roots: str | tuple[str, ...] = ()
     image_shape: tuple[int, int] | None = None  # views are cropped to it (None: DatasetCfg's)
@@ -453,9 +453,9 @@ class DatasetSectionCfg:
         far; else a ``ConfigError`` naming the key and, given ``origins``
         (``Config.origins``), the file or override that set it."""
         origins, section = origins or {}, section or "dataset"
-        if self.name not in PRESETS:
-            raise ConfigError(f"{section}.name={self.name!r} must be one of {sorted(PRESETS)} "
-                              f"(set in {where_set(origins, f'{section}.name')})")
+        if self.name not in DATASET_PRESETS:
+            raise ConfigError(f"{section}.name={self.name!r} must be one of "
+                              f"{sorted(DATASET_PRESETS)} (set in {where_set(origins, f'{section}.name')})")
         overrides = self._typed_overrides(section, origins)
         shapes = {f"{section}.overrides.image_shape": overrides.get("image_shape"),
                   f"{section}.image_shape": self.image_shape}
@@ -468,7 +468,7 @@ class DatasetSectionCfg:
                                   f"{where_set(origins, key)})")
         defaults = {f.name: f.default for f in dataclasses.fields(DatasetCfg)
                     if f.name in ("near", "far")}
-        bounds = {**defaults, **PRESETS[self.name], **overrides}
+        bounds = {**defaults, **DATASET_PRESETS[self.name], **overrides}
         near, far = bounds["near"], bounds["far"]
         if near is not None and far is not None and not (
                 math.isfinite(near) and math.isfinite(far) and 0 < near < far):
