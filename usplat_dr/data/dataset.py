@@ -455,7 +455,8 @@ class DatasetSectionCfg:
         origins, section = origins or {}, section or "dataset"
         if self.name not in DATASET_PRESETS:
             raise ConfigError(f"{section}.name={self.name!r} must be one of "
-                              f"{sorted(DATASET_PRESETS)} (set in {where_set(origins, f'{section}.name')})")
+                              f"{sorted(DATASET_PRESETS)} "
+                              f"(set in {where_set(origins, f'{section}.name')})")
         overrides = self._typed_overrides(section, origins)
         shapes = {f"{section}.overrides.image_shape": overrides.get("image_shape"),
                   f"{section}.image_shape": self.image_shape}
