@@ -11,6 +11,7 @@ checkpoint is never opened when it is loaded.
 Runs are tiny (32x32 images of a 3-scene fake set, the baseline tiny model, one thread): a
 real ``usplat train`` process starts in a few seconds, an in-process step takes ~0.1 s."""
 
+import collections
 import csv
 import errno
 import os
@@ -31,6 +32,7 @@ from usplat_dr.training import Trainer, TrainingStopped
 from usplat_dr.training.checkpoints import load_model
 
 REPO = Path(__file__).parents[2]
+COUNTS = collections.Counter()  # what the process-fault tests saw; printed by the last test
 pytestmark = pytest.mark.usefixtures("restore_threads")
 
 
@@ -92,6 +94,7 @@ def one_line_error(capsys, status: int) -> str:
     err = capsys.readouterr().err.strip()
     assert status == 2, err
     assert err.startswith("usplat train: error:") and "\n" not in err, err
+    COUNTS["everyday mistakes: one line, exit 2"] += 1
     return err
 
 
@@ -144,6 +147,8 @@ def test_metrics_rows_survive_a_kill_right_after_resume(data, run):
     finally:
         err = stop(proc)
     assert changed and proc.returncode == -signal.SIGKILL, err[-2000:]
+    COUNTS["SIGKILL right after resume"] += 1
+    COUNTS["metrics rows lost"] += sum(r not in rows(metrics) for r in before)
     assert rows(metrics)[:2] == before
 
 
@@ -164,6 +169,7 @@ def test_a_second_run_on_a_held_folder_stops_naming_it_and_a_killed_run_frees_it
         err = one_line_error(capsys, status)
         assert str(out) in err and f"pid {first.pid}" in err and "output_dir" in err
         assert leftover.exists()
+        COUNTS["second run on a held folder refused"] += 1
     finally:
         stop(first)
     from usplat_dr.training.trainer import run_folder_lock
@@ -210,6 +216,7 @@ def test_parameters_gone_nan_stop_the_run_with_its_last_good_checkpoint(data, tm
     assert "last.ckpt (step 2)" in message and "--resume" in message
     _, step = load_model(tmp_path / "checkpoints" / "last.ckpt")  # refuses non-finite
     assert step == 2
+    COUNTS["diverging runs stopped with their last good state"] += 1
 
 
 def test_non_finite_forward_errors_are_skipped_then_stop_with_the_state_saved(data, tmp_path):
@@ -231,6 +238,7 @@ def test_non_finite_forward_errors_are_skipped_then_stop_with_the_state_saved(da
     saved = torch.load(trainer.checkpoint_path, weights_only=True)
     assert saved["step"] == 2  # saved when it stopped: the weights of the last good step
     assert all(torch.equal(saved["model"][k], v) for k, v in after_step_1.items())
+    COUNTS["diverging runs stopped with their last good state"] += 1
 
 
 def test_a_run_without_a_test_stage_validates_on_a_training_example(tmp_path):
@@ -336,6 +344,7 @@ def test_a_file_size_limit_stops_a_real_run_in_one_line_and_loses_nothing(data, 
     assert proc.returncode == 2, err[-2000:]
     assert err.count("\n") == 0 and "disk full" in err and "last.ckpt" in err, err
     assert not list(out.rglob("*.tmp")) and not (out / "checkpoints" / "last.ckpt").exists()
+    COUNTS["a real file-size limit: one line, no temporary file"] += 1
 
 
 # ---- 6. a path stored in a checkpoint is never opened ------------------------------------------
@@ -364,3 +373,10 @@ def test_loading_a_checkpoint_never_opens_its_resnet_weights_path(tmp_path, monk
     assert step == 3 and loaded.cfg.resnet_weights is None
     expected = model.state_dict()
     assert all(torch.equal(v, expected[k]) for k, v in loaded.state_dict().items())
+
+
+def test_zz_the_counts(capsys):
+    """Prints what the tests above saw (``pytest tests/training/test_run_safety.py -q``)."""
+    assert COUNTS["metrics rows lost"] == 0
+    with capsys.disabled():
+        print("\nprocess faults: " + ", ".join(f"{n} {k}" for k, n in sorted(COUNTS.items())))
