@@ -34,6 +34,8 @@ COMMANDS = {
                         "accuracy; CSV + chart in OUT/bench")),
     "synth": ("synth", ("render procedural scenes with known geometry (Mitsuba) into the "
                         "field's chunk format, with evaluation and stress splits")),
+    "import": ("import_scene", ("a COLMAP model or a nerfstudio transforms.json (and its "
+                                "images) into the chunk format, with an evaluation index")),
     "fit": ("fit_scene", ("per-scene Gaussian optimisation on a synthetic scene (renderer "
                           "check): held-out PSNR/SSIM and a PNG of renders")),
 }

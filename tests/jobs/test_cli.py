@@ -145,7 +145,7 @@ def test_cli_commands_are_a_table_of_job_modules():
     from usplat_dr.cli import COMMANDS
 
     for name in ("demo", "bench", "train", "eval", "render", "export-ply", "render-demo",
-                 "fit", "synth", "params", "doctor"):
+                 "fit", "synth", "params", "doctor", "import"):
         assert name in COMMANDS
     with pytest.raises(SystemExit) as exit_info:  # each command's own arguments
         main(["train", "--help"])
