@@ -148,7 +148,8 @@ def test_cli_synth_chunk_scenes(tmp_path):
     assert [len(read_chunk(c)) for c in chunks] == [2, 1]
     index = json.loads((tmp_path / "train" / "index.json").read_text())
     assert sorted(index.values()) == ["000000.torch", "000000.torch", "000001.torch"]
-    assert json.loads((tmp_path / "synth.json").read_text())["chunk_scenes"] == 2
+    # the train stage's metadata is beside its chunks (the root's is the test stage's)
+    assert json.loads((tmp_path / "train" / "synth.json").read_text())["chunk_scenes"] == 2
     with pytest.raises(SystemExit):
         main(["synth", "--out", str(tmp_path), "--chunk-scenes", "0"])
     with pytest.raises(ValueError, match="chunk_scenes"):

@@ -28,6 +28,7 @@ def main(argv=None) -> int:
                    help="also render the first target of N scenes again with another sample "
                         "seed: the render noise per class, the ceiling of a warp's PSNR")
     args = p.parse_args(argv)
+    from usplat_dr.data.synth import metadata_folder
     from usplat_dr.evaluation import synthetic_indices
     from usplat_dr.evaluation.view_dependence import (
         meter,
@@ -37,13 +38,18 @@ def main(argv=None) -> int:
     )
     from usplat_dr.io import write_json
 
-    index = json.loads(Path(synthetic_indices(args.data, [args.split])[args.split]).read_text())
+    # The stage's own indices and synth.json (the train stage's are in <data>/train/; sets
+    # made before per-stage metadata have only the root's)
+    meta = metadata_folder(args.data, args.stage)
+    if not (meta / "synth.json").is_file():
+        meta = Path(args.data)
+    index = json.loads(Path(synthetic_indices(meta, [args.split])[args.split]).read_text())
     result = meter(args.data, index, args.stage)
     gaps = {name: paired_gap(result, name) for name in ("glossy", "metal")}
     out = Path(args.out)
     noise = {}
     if args.noise_floor:
-        spp = json.loads((Path(args.data) / "synth.json").read_text())["spp"]
+        spp = json.loads((meta / "synth.json").read_text())["spp"]
         noise = noise_floor(args.data, index, args.noise_floor, spp, args.stage)
     write_json(out / "meter.json", {"data": args.data, "split": args.split,
                                     "classes": result["classes"], "diffuse_minus": gaps,

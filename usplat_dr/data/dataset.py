@@ -19,8 +19,10 @@ record, a corrupt image, a scene missing from ``index.json``, a camera with NaN 
 rotation, an evaluation-index entry naming frames the scene does not have are each skipped
 with one warning naming the file and scene (tests/test_fuzz.py), and counted in the
 summary logged at the end of every pass (``ChunkDataset.last_summary`` in the main process).
-Expected skips (too few frames for the sampler, no evaluation-index entry, FOV over
-``max_fov``, unexpected image shape) are counted without a warning. A skipped scene shortens
+Expected skips (too few frames for the sampler, a null evaluation-index entry, FOV over
+``max_fov``, unexpected image shape) are counted without a warning; in the test stage
+(evaluation) the scenes the sampler gave no views (no index entry, too few frames) are also
+warned about, once per pass, with their count and the first of them. A skipped scene shortens
 its worker's pass by one example: the training stream (``usplat_dr.training.trainer.Batches``)
 is endless, so a rank whose pass ends early starts its next epoch early, never waits.
 """
@@ -54,6 +56,7 @@ from usplat_dr.data.chunks import (
 from usplat_dr.data.shims import augment_flip, crop_views, fov_degrees, normalize_baseline
 from usplat_dr.data.view_sampler import (
     FramesNotInSceneError,
+    NullEntryError,
     StepTracker,
     ViewSamplerBoundedCfg,
     ViewSamplerCfg,
@@ -124,7 +127,12 @@ NEAR_FAR_RANGE = (1e-6, 1e6)
 
 
 class Summary(collections.Counter):
-    """Counts of examples and skip reasons over one pass."""
+    """Counts of examples and skip reasons over one pass, and the first scene skipped for
+    each reason (``first``)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.first: dict[str, str] = {}
 
     WARN = ("unreadable chunk", "malformed scene", "bad camera", "corrupt image",
             "not in index.json", "missing chunk file", "bad depth", "not in its chunk",
@@ -292,6 +300,13 @@ class ChunkDataset(IterableDataset):
         worker = f" (worker {gid} of {total})" if total > 1 else ""
         log.info("%s %s epoch %d%s: %s", self.cfg.name, self.stage, self.epoch, worker,
                  summary.line())
+        if self.stage == "test" and summary["sampler: no views"]:
+            # Evaluation scores only the scenes the sampler gives views for: a key missing
+            # from the evaluation index (another preset's keys, DTU's runs) scores nothing.
+            log.warning("%s test%s: the view sampler gave no views for %d scene(s) (first: %s;"
+                        " not in the evaluation index, or too few frames): not scored",
+                        self.cfg.name, worker, summary["sampler: no views"],
+                        summary.first["sampler: no views"])
 
     def _runs(self, scene: object) -> list[str | None]:
         """The example keys a scene gives: ``[None]`` (its own key), or in the test stage with
@@ -310,6 +325,7 @@ class ChunkDataset(IterableDataset):
 
         def skip(reason: str, detail: str = "") -> None:
             summary[reason] += 1
+            summary.first.setdefault(reason, str(run or key))
             if reason in Summary.WARN:
                 log.warning("skipping scene %s in %s: %s%s", key, chunk_path, reason,
                             f" ({detail})" if detail else "")
@@ -333,7 +349,9 @@ class ChunkDataset(IterableDataset):
             ctx, tgt = self.view_sampler.sample(run or key, num_views, gen)
         except FramesNotInSceneError as e:
             return skip("frames not in scene", str(e))
-        except ViewSamplingError:  # too few frames for the bounded sampler, a null entry
+        except NullEntryError:  # the index's own "not evaluated"
+            return skip("null in evaluation index")
+        except ViewSamplingError:  # too few frames for the bounded sampler, no index entry
             return skip("sampler: no views")
         if (fov_degrees(intrinsics) > self.cfg.max_fov).any():
             return skip("fov over max_fov")

@@ -23,6 +23,11 @@ class ViewSamplingError(ValueError):
     """The scene cannot give an example with this sampler (an expected, counted skip)."""
 
 
+class NullEntryError(ViewSamplingError):
+    """The evaluation index's entry for the scene is null: the index's own "not evaluated"
+    (counted, no warning; a key missing from the index is a plain ``ViewSamplingError``)."""
+
+
 class FramesNotInSceneError(ViewSamplingError):
     """An evaluation index names frames the scene does not have: the index and the data
     disagree (a skip with a warning, unlike a scene too short for the bounded sampler)."""
@@ -162,9 +167,11 @@ class ViewSamplerEvaluation:
 
     def sample(self, scene: str, num_views: int, generator: torch.Generator | None = None
                ) -> tuple[Int64[Tensor, " context"], Int64[Tensor, " target"]]:
-        entry = self.index.get(scene)
-        if entry is None:
+        if scene not in self.index:
             raise ViewSamplingError(f"scene {scene} has no entry in {self.cfg.index_path}")
+        entry = self.index[scene]
+        if entry is None:
+            raise NullEntryError(f"scene {scene}'s entry in {self.cfg.index_path} is null")
         last = max(entry["context"] + entry["target"])  # a Python int: any size compares
         if last >= num_views:
             raise FramesNotInSceneError(f"the entry of {scene} in {self.cfg.index_path} names "

@@ -31,6 +31,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import read_evaluation_index
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.metrics import psnr, ssim
+from usplat_dr.evaluation.provenance import keys_in_training
 from usplat_dr.io import atomic_open, write_json
 
 log = logging.getLogger(__name__)
@@ -91,19 +92,27 @@ def peak_memory_gib(device: torch.device) -> float:
 @torch.no_grad()
 def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
              lpips=None, device: torch.device | str = "cpu", images_per_split: int = 4,
-             progress: bool = True, label: str = "", prune=None) -> dict:
+             progress: bool = True, label: str = "", prune=None,
+             provenance: dict | None = None) -> dict:
     """Evaluate ``model`` on each split (``indices``: split name -> evaluation index JSON) of
     ``dataset`` (a config section: name, roots, image_shape). Returns the summary.
 
     ``prune``: a ``PruneSettings`` applied per target before rendering, or ``None`` (the
-    default: the protocol's numbers come from the exact model); the summary records it."""
+    default: the protocol's numbers come from the exact model); the summary records it.
+
+    ``provenance``: the checkpoint's provenance record; when it lists the training scenes
+    (``train_keys``), scored scenes among them are a warning (one line: the count and the
+    first) and the summary's ``scenes_in_training_data``. An evaluation index none of whose
+    keys names a scene of the data is a warning too."""
     device = torch.device(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = model.to(device).eval()
     rows, summary, times = [], {"splits": {}}, []
+    scored_keys: set[str] = set()  # the data's scene keys scored, over every split
     for split, index in indices.items():
         ds = dataset_from_section({**dataset, "evaluation_index": index}, "test")
+        warn_unmatched_index(ds, split, index)
         scenes = []
         bar = None
         if progress:
@@ -151,6 +160,13 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         if coverage["failed"]:
             log.warning("%s: %s (first: %s)", split, coverage["coverage"],
                         ", ".join(coverage["failed_scenes"][:5]))
+        scored_keys |= scene_keys(ds, [r["scene"] for r in scenes])
+    leaked = keys_in_training(scored_keys, provenance or {})
+    if leaked:
+        log.warning("%d evaluated scene(s) are in the checkpoint's training data (first: %s): "
+                    "their scores are not held out", len(leaked), leaked[0])
+    if leaked is not None:
+        summary["scenes_in_training_data"] = len(leaked)
     steady = times[1:] if len(times) > 1 else times  # the first scene warms up kernels
     summary.update(
         parameters=sum(p.numel() for p in model.parameters()),
@@ -168,6 +184,31 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     write_json(out / "summary.json", summary)
     log.info("evaluation summary: %s", json.dumps(summary["splits"]))
     return summary
+
+
+def _runs(ds, key: str) -> list[str]:
+    """The example names ``ds`` gives scene ``key`` in the test stage: the key, or with
+    ``test_times_per_scene`` = T > 1 (DTU), ``<key>_00`` .. ``<key>_(T-1)``."""
+    times = ds.cfg.test_times_per_scene
+    return [key] if times <= 1 else [f"{key}_{t:02d}" for t in range(times)]
+
+
+def scene_keys(ds, scored: list[str]) -> set[str]:
+    """The scene keys of ``ds``'s data behind the scored example names ``scored``."""
+    done = set(scored)
+    return {k for k in ds.index if any(r in done for r in _runs(ds, k))}
+
+
+def warn_unmatched_index(ds, split: str, index: str | Path) -> None:
+    """Warn (one line) when no key of the evaluation index names a scene of ``ds``'s data:
+    the split would score nothing (another dataset's index, or a preset whose example
+    names differ from the index's, as DTU's ``<scan>_NN`` runs)."""
+    entries = read_evaluation_index(index)
+    names = {r for k in ds.index for r in _runs(ds, k)}
+    if entries and ds.index and not names & set(entries):
+        log.warning("%s: evaluation index %s matches no scene of the data (%d keys, e.g. %s; "
+                    "the data's %d scenes are named e.g. %s): nothing to score", split, index,
+                    len(entries), next(iter(entries)), len(names), min(names))
 
 
 def index_coverage(index: str | Path, scored: list[str]) -> dict:

@@ -1,11 +1,13 @@
 """Where a result came from: the data's content hash, library versions, the CPU and thread
 settings. Recorded in every training checkpoint and in the demo's report, so that two runs
-that differ can be told apart by what they ran on (docs/reproducibility.md).
+that differ can be told apart by what they ran on (docs/reproducibility.md). Training
+checkpoints also record the keys of the scenes they trained on (``training_keys``), so that
+``usplat eval`` can warn when it scores one of them (``keys_in_training``).
 
 Examples:
     >>> info = environment()
     >>> sorted(info)[:3]
-    ['cpu', 'drjit', 'mitsuba']
+    ['cores', 'cpu', 'drjit']
 """
 
 import hashlib
@@ -17,6 +19,7 @@ from pathlib import Path
 import torch
 
 from usplat_dr import portable
+from usplat_dr.data.chunks import read_index
 
 #: Files that define a dataset's content: chunks, their index and the evaluation indices.
 DATA_PATTERNS = ("*/index.json", "*/*.torch", "evaluation_index_*.json")
@@ -64,6 +67,33 @@ def dataset_hash(root: str | os.PathLike) -> str:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
     return h.hexdigest()
+
+
+def training_keys(roots=()) -> list[str]:
+    """The sorted scene keys of the train stage (``<root>/train/index.json``) of each root
+    that has one: what a training run saw (checkpoints record them as ``train_keys``)."""
+    keys: set[str] = set()
+    for root in roots:
+        if (Path(root) / "train" / "index.json").is_file():
+            keys.update(read_index(Path(root) / "train"))
+    return sorted(keys)
+
+
+def keys_in_training(scored, provenance_record: dict) -> list[str] | None:
+    """The scored scene keys that a checkpoint's provenance (``provenance_record``) lists as
+    training scenes, sorted; ``None`` when it records none (checkpoints from before
+    ``train_keys``: nothing to check against).
+
+    Examples:
+        >>> keys_in_training(["a", "b"], {"train_keys": ["b", "c"]})
+        ['b']
+        >>> keys_in_training(["a"], {"data": {}}) is None
+        True
+    """
+    train = provenance_record.get("train_keys") if isinstance(provenance_record, dict) else None
+    if not isinstance(train, (list, tuple)):
+        return None
+    return sorted(set(scored) & set(train))
 
 
 def provenance(roots=()) -> dict:

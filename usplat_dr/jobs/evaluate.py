@@ -13,7 +13,7 @@ from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.jobs.arguments import out_folder
 from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
 from usplat_dr.render.prune import PruneSettings
-from usplat_dr.training.checkpoints import load_model
+from usplat_dr.training.checkpoints import checkpoint_provenance, load_model
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
 log = logging.getLogger(__name__)
@@ -82,7 +82,11 @@ def run(args: argparse.Namespace) -> int:
     if args.precision == "bfloat16" and args.device == "cpu":
         warn_slow_bfloat16()
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
+    # Scenes the checkpoint trained on are warned about (checkpoints that record no
+    # train_keys, from before they were recorded, cannot be checked).
+    record = checkpoint_provenance(args.checkpoint, args.trust_checkpoint)
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
-                       prune=PruneSettings(merge=True) if args.prune else None)
+                       prune=PruneSettings(merge=True) if args.prune else None,
+                       provenance=record)
     print(json.dumps(summary, indent=1))
     return 0

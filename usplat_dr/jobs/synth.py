@@ -13,12 +13,18 @@ from usplat_dr.jobs.arguments import at_least, non_negative_int, out_folder, pos
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=out_folder, required=True,
-                   help="dataset root to write (<out>/<stage>/*.torch)")
+                   help="dataset root to write (<out>/<stage>/*.torch); the test stage's "
+                   "evaluation indices, splits.json, synth.json and previews/ go into <out>, "
+                   "the train stage's into <out>/train/")
     p.add_argument("--scenes", type=positive_int, default=32, help="number of scenes")
     p.add_argument("--frames", type=at_least(3), default=24, help="frames per scene (>= 3)")
     p.add_argument("--resolution", type=at_least(4), nargs=2, default=[64, 64],
                    metavar=("H", "W"), help="image height and width")
-    p.add_argument("--seed", type=int, default=0, help="same seed, same bytes")
+    p.add_argument("--seed", type=int, default=None,
+                   help="same seed, same bytes (whatever the stage). Default: 0 for --stage "
+                   "test, 1 for --stage train, so that a train and a test set made without "
+                   "--seed share no scene; a stage whose scenes the other stage of --out "
+                   "already holds is refused")
     p.add_argument("--kind", nargs="+", default=list(KINDS), choices=KINDS,
                    help="scene kinds, used round-robin")
     p.add_argument("--appearance", default="diffuse", choices=APPEARANCES,

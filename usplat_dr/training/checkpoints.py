@@ -107,6 +107,13 @@ def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"
     return model.to(device).eval(), step if isinstance(step, int) else 0
 
 
+def checkpoint_provenance(checkpoint: str | os.PathLike, trust: bool = False) -> dict:
+    """A usplat checkpoint's provenance record (``{}`` when it has none): the data hashes,
+    libraries and, since ``train_keys`` was added, the training scenes' keys."""
+    record = read_usplat_checkpoint(checkpoint, trust=trust).get("provenance")
+    return record if isinstance(record, dict) else {}
+
+
 def training_image_shape(checkpoint: str | os.PathLike, trust: bool = False
                          ) -> tuple[int, int] | None:
     """The (H, W) a usplat checkpoint was trained at (its config's ``dataset.image_shape``),

@@ -53,7 +53,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import StepTracker
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.lpips import LPIPS
-from usplat_dr.evaluation.provenance import provenance
+from usplat_dr.evaluation.provenance import provenance, training_keys
 from usplat_dr.io import UntrustedCheckpointError, torch_save
 from usplat_dr.training import cores as _cores
 from usplat_dr.training.checkpoints import read_usplat_checkpoint
@@ -309,7 +309,10 @@ class Trainer:
             anneal_strategy="cos")
         # What this run ran on (data content hash, library versions, CPU, threads): saved
         # in every checkpoint, so runs that differ can be told apart.
-        self.provenance = provenance(c.dataset.roots) if self.rank == 0 else {}
+        # The training scenes' keys too: ``usplat eval`` warns when it scores one of them.
+        self.provenance = ({**provenance(c.dataset.roots),
+                            "train_keys": training_keys(c.dataset.roots)}
+                           if self.rank == 0 else {})
         self.step = 0
         self.skipped = 0
         self.saved_step = None  # the step of this run's checkpoint

@@ -2,9 +2,16 @@
 
 ``synthesize(out, scenes, frames, resolution, seed)`` writes ``<out>/<stage>/*.torch`` and
 ``index.json`` (readable by ``ChunkDataset`` and by pixelSplat/MVSplat's own loaders), one
-evaluation index per split (``<out>/evaluation_index_<split>.json``), ``<out>/splits.json``
-(per-scene measurements behind the stress splits), ``<out>/synth.json`` (the arguments) and
-preview images (``<out>/previews/<key>.png``: colour above depth).
+evaluation index per split (``evaluation_index_<split>.json``), ``splits.json`` (per-scene
+measurements behind the stress splits), ``synth.json`` (the arguments) and preview images
+(``previews/<key>.png``: colour above depth). The test stage writes these into ``<out>``
+(where ``usplat eval`` finds the indices); any other stage into ``<out>/<stage>/``, beside its
+chunks, so that the stages of one root never overwrite each other's (``metadata_folder``).
+
+Scene ``i`` of a set is made from ``scene_seed(seed, i)``; its key ``<kind>_<seed>_<i>`` names
+both, so two stages share a scene exactly when they share a key. Without a seed each stage
+takes its own (``DEFAULT_SEEDS``), and ``synthesize`` refuses to write a stage that would
+share scenes with the other stage of the same root (``check_stages_disjoint``).
 
 Each scene record carries, besides the standard keys: ``depths`` (float16 [V, H, W],
 camera-space z, +inf on a miss), ``materials`` (uint8 [V, H, W]: 0 miss, 1 textured,
@@ -23,7 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras
+from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras, read_index
 from usplat_dr.data.synth.render import render_spec
 from usplat_dr.data.synth.scenes import APPEARANCES, KINDS, make_spec
 from usplat_dr.data.synth.splits import SPLITS, scene_splits
@@ -32,12 +39,76 @@ from usplat_dr.io.images import colorize_depth, save_png
 
 log = logging.getLogger(__name__)
 
-__all__ = ["APPEARANCES", "KINDS", "SPLITS", "make_spec", "render_spec", "scene_record",
+__all__ = ["APPEARANCES", "DEFAULT_SEEDS", "KINDS", "SPLITS", "check_stages_disjoint",
+           "default_seed", "make_spec", "metadata_folder", "render_spec", "scene_record",
            "synthesize"]
 
 
 #: Samples per pixel by appearance (``synthesize``'s default).
 DEFAULT_SPP = {"diffuse": 64, "view-dependent": 256}
+
+#: The seed of each stage when none is given: different, so that a train and a test set made
+#: without ``--seed`` share no scene (test keeps 0, the seed its default always had).
+DEFAULT_SEEDS = {"test": 0, "train": 1}
+#: The stages ``usplat synth`` writes, and the one whose metadata stays at the root.
+STAGES = ("train", "test")
+ROOT_STAGE = "test"
+
+
+def default_seed(stage: str) -> int:
+    """The seed ``synthesize`` uses for ``stage`` when it is given none (``DEFAULT_SEEDS``).
+
+    Examples:
+        >>> default_seed("train") != default_seed("test")
+        True
+    """
+    if stage not in DEFAULT_SEEDS:
+        raise ValueError(f"stage must be one of {sorted(DEFAULT_SEEDS)}, got {stage!r}")
+    return DEFAULT_SEEDS[stage]
+
+
+def metadata_folder(out: str | os.PathLike, stage: str) -> Path:
+    """Where ``synthesize`` writes ``stage``'s evaluation indices, ``splits.json``,
+    ``synth.json`` and ``previews/``: ``out`` for the test stage (as always: evaluation reads
+    ``<out>/evaluation_index_*.json``), ``out/<stage>`` for the others.
+
+    Examples:
+        >>> metadata_folder("d", "test").as_posix(), metadata_folder("d", "train").as_posix()
+        ('d', 'd/train')
+    """
+    return Path(out) if stage == ROOT_STAGE else Path(out) / stage
+
+
+def scene_key(kind: str, seed: int, i: int, appearance: str = "diffuse") -> str:
+    """The key of scene ``i`` of a set made with ``seed``: ``<kind>_<seed>_<i:05d>`` (``_vd``
+    for the view-dependent appearance)."""
+    return f"{kind}_{seed}_{i:05d}" + ("_vd" if appearance == "view-dependent" else "")
+
+
+def check_stages_disjoint(out: str | os.PathLike, stage: str, keys: list[str]) -> None:
+    """Raise a ``ValueError`` (one line: the root, the other stage, the fix) when another
+    stage of ``out`` already holds any of the scenes ``keys`` (the same key is the same kind,
+    seed and scene number, so the same scene; ``_vd`` aside, the same geometry and cameras):
+    training on test scenes would make the evaluation score memorised scenes."""
+    def base(key: str) -> str:
+        return key.removesuffix("_vd")
+
+    wanted = {base(k) for k in keys}
+    for other in STAGES:
+        index = Path(out) / other / "index.json"
+        if other == stage or not index.is_file():
+            continue
+        try:
+            held = read_index(index.parent)
+        except ValueError:
+            continue  # not ours to judge here; the dataset reports a broken index
+        shared = sorted(k for k in held if base(k) in wanted)
+        if shared:
+            raise ValueError(
+                f"{out}: its {other} stage already holds {len(shared)} of these scenes (e.g. "
+                f"{shared[0]}), so {stage} and {other} would share scenes; pass another --seed "
+                f"(or none: train and test default to different seeds, "
+                f"{DEFAULT_SEEDS}) or another --out")
 
 
 def scene_seed(seed: int, i: int) -> int:
@@ -93,7 +164,7 @@ def _rendered(jobs_list: list[tuple], jobs: int):
 
 
 def synthesize(out: str | os.PathLike, scenes: int, frames: int,
-               resolution: tuple[int, int], seed: int = 0, kinds: tuple[str, ...] = KINDS,
+               resolution: tuple[int, int], seed: int | None = None, kinds: tuple[str, ...] = KINDS,
                spp: int | None = None, backend: str = "llvm", stage: str = "test",
                previews: int = 8, progress: bool = True, jobs: int = 1,
                chunk_scenes: int | None = None, appearance: str = "diffuse") -> dict:
@@ -108,7 +179,11 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     cameras in both. ``spp``: Mitsuba samples per pixel (None: ``DEFAULT_SPP`` of the
     appearance: path tracing's noise on shiny surfaces needs 256 to stay below what changes
     with the viewpoint; train/studies/README.md, "The view-dependent appearance, version
-    2"). Returns the split summary (split -> number of scenes in it).
+    2"). ``seed``: None takes the stage's own (``DEFAULT_SEEDS``); a given seed makes the
+    same bytes whatever the stage. The test stage's metadata goes into ``out``, any other
+    stage's into ``out/<stage>`` (``metadata_folder``); a stage whose scenes another stage
+    of ``out`` already holds is a ``ValueError`` (``check_stages_disjoint``). Returns the
+    split summary (split -> number of scenes in it).
 
     Examples:
         >>> import tempfile
@@ -117,6 +192,9 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
         >>> summary["standard"]
         1
     """
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    seed = default_seed(stage) if seed is None else seed
     if scenes < 1 or frames < 3:
         raise ValueError(f"scenes must be >= 1 and frames >= 3, got {scenes} and {frames}")
     h, w = resolution
@@ -136,6 +214,9 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
         raise ValueError(f"chunk_scenes must be >= 1 (or None: chunks of up to 100 MB), got "
                          f"{chunk_scenes}")
     out = Path(out)
+    keys = [scene_key(kinds[i % len(kinds)], seed, i, appearance) for i in range(scenes)]
+    check_stages_disjoint(out, stage, keys)
+    meta = metadata_folder(out, stage)
     splits: dict[str, dict] = {s: {} for s in SPLITS}
     measurements = {}
     bar = None
@@ -148,8 +229,7 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     with ChunkWriter(out, stage, chunk_bytes=100_000_000, chunk_scenes=chunk_scenes) as writer:
         for i, (spec, s, rendered) in enumerate(zip(specs, seeds, _rendered(work, jobs))):
             images, depths, materials, intr = rendered
-            kind = spec["kind"]
-            key = f"{kind}_{seed}_{i:05d}" + ("_vd" if appearance == "view-dependent" else "")
+            kind, key = spec["kind"], keys[i]
             writer.add(scene_record(key, spec, images, depths, materials, intr))
             entries, stats = scene_splits(np.asarray(spec["cameras"]["c2w"]), intr, depths,
                                           materials, np.random.default_rng(s))
@@ -157,21 +237,21 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
                 splits[name][key] = entry
             measurements[key] = {"kind": kind, "tags": spec["tags"], **stats}
             if i < previews:
-                _preview(out / "previews" / f"{key}.png", images, depths)
+                _preview(meta / "previews" / f"{key}.png", images, depths)
             if bar is not None:
                 bar.update(1)
     if bar is not None:
         bar.close()
     for name, index in splits.items():
-        write_json(out / f"evaluation_index_{name}.json", index)
+        write_json(meta / f"evaluation_index_{name}.json", index)
     summary = {name: sum(e is not None for e in index.values()) for name, index in splits.items()}
-    write_json(out / "splits.json", {"scenes_per_split": summary, "scenes": measurements})
+    write_json(meta / "splits.json", {"scenes_per_split": summary, "scenes": measurements})
     arguments = {"scenes": scenes, "frames": frames, "resolution": [h, w], "seed": seed,
                  "kinds": list(kinds), "spp": spp, "stage": stage}
     if chunk_scenes is not None:  # (absent by default: earlier sets keep their bytes)
         arguments["chunk_scenes"] = chunk_scenes
     if appearance != "diffuse":  # (likewise)
         arguments["appearance"] = appearance
-    write_json(out / "synth.json", arguments)
+    write_json(meta / "synth.json", arguments)
     log.info("wrote %d scenes to %s; scenes per split: %s", scenes, out, summary)
     return summary
