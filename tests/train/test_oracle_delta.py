@@ -54,6 +54,25 @@ def test_zero_delta_is_the_baseline_and_the_per_target_fit_is_nested(layers, ran
     assert "_target_weights" not in vars(model)  # the method override is gone again
 
 
+def test_the_context_fit_renders_the_context_cameras_and_scores_the_targets():
+    torch.manual_seed(0)
+    model = UniqueSplat.from_preset("tiny", variant="baseline").eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    args = scene(seed=1)
+    with torch.no_grad():
+        plain = model(*args).color[0]
+    batch = batch_of(args, (plain + 0.05).clamp(0, 1)[None])
+    specs = (ConvSpec.of("to_gaussians.2", model._conv("to_gaussians.2")),)
+    fits = oracle.fit_scene(model, batch, specs, 4, steps=2, lr=1e-3, seed=0,
+                            modes=["context"], pair_bias=False)
+    ref = oracle.score_targets(plain, batch, "all")
+    # scored on the targets before fitting: (a) (1e-3 dB, as above); the fit to the context
+    # images moved them
+    assert max(abs(a - b) for a, b in zip(fits["context"]["before"], ref)) < 1e-3
+    assert fits["context"]["after"] != ref
+
+
 def test_spread_copies_the_shared_fit_into_every_target():
     model = UniqueSplat.from_preset("tiny", variant="baseline")
     specs = (ConvSpec.of("to_gaussians.2", model._conv("to_gaussians.2")),)

@@ -181,7 +181,10 @@ def fit_scene(model, batch, specs, rank, steps: int, lr: float, seed: int, modes
         if "context" in modes:  # render the context views themselves: what a test has
             fit = DeltaFit(specs, 1, rank, g, pair_bias)
             before = score(fit)
-            optimise(fit, (*args[:5], *args[1:5]), args[0][0], steps)
+            on_context = args._replace(  # the context cameras as the targets
+                target_intrinsics=args.intrinsics, target_extrinsics=args.extrinsics,
+                target_near=args.near, target_far=args.far)
+            optimise(fit, on_context, args.images[0], steps)
             out["context"] = {"before": before, "after": score(fit)}
     finally:
         del model._target_weights
