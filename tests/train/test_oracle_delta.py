@@ -26,10 +26,8 @@ def batch_of(args, target_images):
     return {"context": context, "target": target}
 
 
-@pytest.mark.parametrize(("layers", "rank", "pair_bias"), [
-    (oracle.INJECTABLE_ALL, 4, False), (("to_disparity.2",), None, False),
-    ((oracle.PROBE_LAYER,), 4, True)])
-def test_zero_delta_is_the_baseline_and_the_per_target_fit_is_nested(layers, rank, pair_bias):
+def frozen_baseline():
+    """A seeded tiny (a) with its weights frozen, a scene's inputs and (a)'s target renders."""
     torch.manual_seed(0)
     model = UniqueSplat.from_preset("tiny", variant="baseline").eval()
     for p in model.parameters():
@@ -37,6 +35,14 @@ def test_zero_delta_is_the_baseline_and_the_per_target_fit_is_nested(layers, ran
     args = scene(seed=1)
     with torch.no_grad():
         plain = model(*args).color[0]
+    return model, args, plain
+
+
+@pytest.mark.parametrize(("layers", "rank", "pair_bias"), [
+    (oracle.INJECTABLE_ALL, 4, False), (("to_disparity.2",), None, False),
+    ((oracle.PROBE_LAYER,), 4, True)])
+def test_zero_delta_is_the_baseline_and_the_per_target_fit_is_nested(layers, rank, pair_bias):
+    model, args, plain = frozen_baseline()
     # targets: (a)'s renders brighter by 0.02, 0.05 and 0.1 (finite PSNRs, a change per view)
     shift = torch.tensor([0.02, 0.05, 0.1])[:, None, None, None]
     batch = batch_of(args, (plain + shift).clamp(0, 1)[None])
@@ -55,13 +61,7 @@ def test_zero_delta_is_the_baseline_and_the_per_target_fit_is_nested(layers, ran
 
 
 def test_the_context_fit_renders_the_context_cameras_and_scores_the_targets():
-    torch.manual_seed(0)
-    model = UniqueSplat.from_preset("tiny", variant="baseline").eval()
-    for p in model.parameters():
-        p.requires_grad_(False)
-    args = scene(seed=1)
-    with torch.no_grad():
-        plain = model(*args).color[0]
+    model, args, plain = frozen_baseline()
     batch = batch_of(args, (plain + 0.05).clamp(0, 1)[None])
     specs = (ConvSpec.of("to_gaussians.2", model._conv("to_gaussians.2")),)
     fits = oracle.fit_scene(model, batch, specs, 4, steps=2, lr=1e-3, seed=0,

@@ -8,7 +8,6 @@ Each start imports torch and Dr.Jit and builds the model (a few seconds on one c
 steps are tiny: 32x32 images, 2 targets, a checkpoint after every step."""
 
 import csv
-import os
 import random
 import signal
 import subprocess
@@ -19,6 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.training.processes import environment, stamp, wait_for
 from usplat_dr.data.synth import synthesize
 
 REPO = Path(__file__).parents[2]
@@ -52,28 +52,12 @@ def command(root: Path, out: Path) -> list[str]:
             "dataset.view_sampler.initial_max_distance_between_context_views=6"]
 
 
-def environment() -> dict:
-    return {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-
-
 def checkpoint_step(out: Path) -> int:
     """The step of the run's checkpoint, which must always be complete and loadable."""
     path = out / "checkpoints" / "last.ckpt"
     if not path.exists():
         return 0
     return torch.load(path, map_location="cpu", weights_only=True)["step"]
-
-
-def wait_for(predicate, proc: subprocess.Popen, timeout: float = 120.0) -> bool:
-    """Poll ``predicate`` until it holds (True) or the process ends (False)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        if proc.poll() is not None:
-            return False
-        time.sleep(0.005)
-    raise TimeoutError("usplat train made no progress")
 
 
 def weights(out: Path) -> dict:
@@ -144,12 +128,3 @@ def seconds_per_step(out: Path) -> float:
     first, last = rows[0], rows[-1]
     return (float(last["time_s"]) - float(first["time_s"])) / (int(last["step"])
                                                               - int(first["step"]))
-
-
-def stamp(path: Path):
-    """The file's identity (a new inode with each atomic replace), or None."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return None
-    return st.st_ino, st.st_mtime_ns

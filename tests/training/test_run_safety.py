@@ -19,13 +19,13 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
 
 from tests.data.fakes import fake_scene, write_plain_dataset
+from tests.training.processes import environment, stamp, stop, wait_for
 from usplat_dr.cli import main
 from usplat_dr.config import load_config
 from usplat_dr.training import Trainer, TrainingStopped
@@ -59,10 +59,6 @@ def overrides(root: Path, out: Path, steps: int, *extra: str) -> list[str]:
 
 def usplat_train(*args: str) -> list[str]:
     return ["-q", "train", "--config", "synthetic_tiny.yaml", *args]
-
-
-def environment() -> dict:
-    return {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
 
 
 @pytest.fixture(scope="module")
@@ -101,34 +97,6 @@ def one_line_error(capsys, status: int) -> str:
 def rows(path: Path) -> list[dict]:
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
-
-
-def stamp(path: Path):
-    """The file's identity and size (an atomic replace makes a new inode), or None."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return None
-    return st.st_ino, st.st_size, st.st_mtime_ns
-
-
-def wait_for(predicate, proc: subprocess.Popen, timeout: float = 120.0) -> bool:
-    """Poll ``predicate`` every millisecond until it holds (True) or ``proc`` ends (False)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        if proc.poll() is not None:
-            return False
-        time.sleep(0.001)
-    raise TimeoutError("usplat train made no progress")
-
-
-def stop(proc: subprocess.Popen) -> str:
-    """SIGKILL ``proc`` (if still running); its stderr."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGKILL)
-    return proc.communicate(timeout=60)[1].decode()
 
 
 # ---- 1. metrics.csv survives a kill right after resume -----------------------------------------

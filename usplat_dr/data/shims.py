@@ -15,6 +15,8 @@ from jaxtyping import Float
 from PIL import Image
 from torch import Tensor
 
+from usplat_dr.data.chunks import MAX_IMAGE_PIXELS
+
 
 def fov_degrees(intrinsics: Float[Tensor, "*batch 3 3"]) -> Float[Tensor, "*batch 2"]:
     """Horizontal and vertical field of view in degrees, measured as the field does: the
@@ -52,11 +54,6 @@ def _resize(image: Tensor, shape: tuple[int, int]) -> Tensor:
     return torch.from_numpy(np.asarray(out).copy()).to(image.dtype)
 
 
-#: An image is resized to cover the model's shape before the centre crop: a 1 x 4,000,000
-#: frame would become 32 x 128,000,000 for a 32x32 crop. Beyond this, the scene is skipped.
-MAX_RESIZED_PIXELS = 8192 * 8192
-
-
 def rescale_and_crop(
     images: Tensor,  # uint8 [V, 3, H, W] (Lanczos) or float [V, H, W] depth (nearest)
     intrinsics: Float[Tensor, "view 3 3"],
@@ -76,9 +73,11 @@ def rescale_and_crop(
     h_out, w_out = shape
     scale = max(h_out / h_in, w_out / w_in)
     h_scaled, w_scaled = round(h_in * scale), round(w_in * scale)
-    if h_scaled * w_scaled > MAX_RESIZED_PIXELS:
+    # the cap decoding applies: a 1 x 4,000,000 frame passes it, but covering a 32x32 crop
+    # would make it 32 x 128,000,000 (the scene is skipped)
+    if h_scaled * w_scaled > MAX_IMAGE_PIXELS:
         raise ValueError(f"a {h_in}x{w_in} image would be resized to {h_scaled}x{w_scaled} "
-                         f"to cover {h_out}x{w_out}: more than {MAX_RESIZED_PIXELS:,} pixels")
+                         f"to cover {h_out}x{w_out}: more than {MAX_IMAGE_PIXELS:,} pixels")
     if (h_scaled, w_scaled) != (h_in, w_in):
         images = torch.stack([_resize(im, (h_scaled, w_scaled)) for im in images])
     row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2

@@ -1,8 +1,6 @@
 """Argument types shared by the jobs' parsers: a bad value is a usage error from argparse."""
 
 import argparse
-import os
-import stat
 from pathlib import Path
 
 
@@ -47,13 +45,10 @@ def out_folder(text: str) -> str:
 def out_file(text: str) -> str:
     """An argparse ``type``: a file to write (created or replaced); a folder, device or FIFO
     there is a usage error (it is never replaced)."""
+    from usplat_dr.io.atomic import refuse_special  # the writers' own check
+
     try:
-        mode = os.stat(text).st_mode
-    except FileNotFoundError:
-        return text
-    except OSError as e:
-        raise argparse.ArgumentTypeError(f"{text!r}: {e.strerror}") from None
-    if not stat.S_ISREG(mode):
-        raise argparse.ArgumentTypeError(f"{text!r} exists and is not a regular file (a "
-                                         "folder, device or FIFO): name a new file")
+        refuse_special(Path(text))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
     return text
