@@ -12,6 +12,7 @@ import torch
 from tests.model.conftest import two_view_cameras
 from usplat_dr.data.types import SceneInputs
 from usplat_dr.model import CheckpointMismatchError, PrimaryNetwork, UniqueSplat
+from usplat_dr.model.hypernet.hypernetwork import LayerDelta
 from usplat_dr.model.hypernet.resnet import ResNet18
 from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, UniqueSplatCfg
 from usplat_dr.render import RasterSettings, rasterize
@@ -401,3 +402,61 @@ def test_colour_sh_degree_zero_makes_colour_view_independent():
     assert torch.equal(f.means, g.means) and torch.equal(f.opacities, g.opacities)
     with pytest.raises(ValueError, match="colour_sh_degree"):
         dataclasses.replace(model.cfg.primary, colour_sh_degree=3)
+
+
+def test_a_reused_encoding_and_given_delta_w_render_what_forward_renders():
+    """``encoding=`` (the encoder's output, computed once) and ``delta_w=`` (Delta W given,
+    for studies with the primary network fixed) change nothing when they hold what forward
+    would compute itself: (c) with its own branch's Delta W, and (a) with a zero Delta W."""
+    torch.manual_seed(0)
+    model = UniqueSplat.from_preset("tiny", variant="full", delta_init_std=1e-2).eval()
+    args = scene(n=3)
+    with torch.no_grad():
+        ref = model(*args)
+        encoding = model.encode(*args[:5])
+        again = model(*args, encoding=encoding)
+        _, deltas, _ = model._target_weights(*args[:3], *args[5:])
+        given = model(*args, encoding=encoding, delta_w=deltas)
+    # the same arithmetic on the same tensors: bit-for-bit
+    assert torch.equal(again.color, ref.color) and torch.equal(given.color, ref.color)
+    assert given.per_target
+
+    base = UniqueSplat.from_preset("tiny", variant="baseline").eval()
+    spec = base.conv_spec("to_disparity.2")
+    zero = LayerDelta(bias=torch.zeros(3, spec.out_channels),
+                      u=torch.zeros(3, spec.out_channels, 2),
+                      v=torch.randn(3, 2, spec.in_channels, spec.kernel_size, spec.kernel_size))
+    with torch.no_grad():
+        plain = base(*args)
+        zeroed = base(*args, delta_w={"to_disparity.2": zero})
+    # Delta W = U V = 0 through the per-target path: float rounding of the batched
+    # convolution only (measured ~1e-7; 1e-5 is far below a wrong layer's effect, ~1e-1)
+    assert zeroed.per_target and not plain.per_target
+    assert (zeroed.color - plain.color).abs().max() < 1e-5
+
+
+def test_a_wrong_encoding_or_delta_w_names_the_argument():
+    model = UniqueSplat.from_preset("tiny", variant="baseline").eval()
+    args = scene(n=2)
+    spec = model.conv_spec("to_gaussians.2")
+    good = LayerDelta(bias=torch.zeros(2, spec.out_channels))
+    with pytest.raises(ValueError, match="delta_w must map layer names"):
+        model(*args, delta_w={"primary.backbone": good}, render=False)
+    with pytest.raises(ValueError, match=r"delta_w\['to_gaussians.2'\] must be a LayerDelta "
+                                         r"for B\*N = 2"):
+        model(*args, delta_w={"to_gaussians.2": LayerDelta(bias=torch.zeros(3, 1))},
+              render=False)
+    with torch.no_grad():
+        small = model.encode(*scene(size=32, n=2)[:5])
+    with pytest.raises(ValueError, match="encoding is for other context views"):
+        model(*args, encoding=small, render=False)
+    with torch.no_grad():
+        dropped = model.encode(*args[:5])
+    dropped.drop_intermediates()  # what PrimaryNetwork.forward leaves: no head inputs
+    with pytest.raises(ValueError, match="encoding must be what UniqueSplat.encode returned"):
+        model(*args, encoding=dropped, render=False)
+    grad = model.encode(*args[:5])  # parameters require grad: so does the encoding
+    with pytest.raises(ValueError, match="encoding needs a gradient"):
+        model(*args, encoding=grad, render=False)
+    with pytest.raises(ValueError, match="name must be one of"):
+        model.conv_spec("to_gaussians.1")

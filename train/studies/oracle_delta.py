@@ -142,52 +142,48 @@ def fit_scene(model, batch, specs, rank, steps: int, lr: float, seed: int, modes
     args = model_inputs(batch, "cpu")
     gt = batch["target"]["image"][0]
     n = gt.shape[0]
-    weights = {s.name: (model._conv(s.name).weight, model._conv(s.name).bias) for s in specs}
-    current = {}
+    with torch.no_grad():  # the primary network is frozen: its encoder runs once per scene
+        encoding = model.encode(args.images, args.intrinsics, args.extrinsics, args.near,
+                                args.far)
 
-    def target_weights(images, intrinsics, extrinsics, target_intrinsics, *_):
-        return weights, current["fit"].deltas(target_intrinsics.shape[1]), {}
+    def render(fit, fit_args):
+        return model(*fit_args, encoding=encoding,
+                     delta_w=fit.deltas(fit_args.target_intrinsics.shape[1])).color[0]
 
     def score(fit) -> list[float]:
-        current["fit"] = fit
         with torch.no_grad():
-            return score_targets(model(*args).color[0], batch, pixels)
+            return score_targets(render(fit, args), batch, pixels)
 
     def optimise(fit, fit_args, fit_gt, k: int):
-        current["fit"] = fit
         opt = torch.optim.Adam(fit.parameters(), lr=lr)
         for _ in range(k):
-            loss = (model(*fit_args).color[0] - fit_gt).square().mean()
+            loss = (render(fit, fit_args) - fit_gt).square().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
         return fit
 
     g = torch.Generator().manual_seed(seed)
-    model._target_weights = target_weights
-    try:
-        out = {}
-        if "shared" in modes or "per-target" in modes:
-            shared = DeltaFit(specs, 1, rank, g, pair_bias)
-            before = score(shared)
+    out = {}
+    if "shared" in modes or "per-target" in modes:
+        shared = DeltaFit(specs, 1, rank, g, pair_bias)
+        before = score(shared)
+        optimise(shared, args, gt, steps)
+        out["shared_half"] = {"before": before, "after": score(shared)}
+        if "per-target" in modes:
+            per = optimise(shared.spread(n), args, gt, steps)
+            out["per-target"] = {"before": before, "after": score(per)}
+        if "shared" in modes:
             optimise(shared, args, gt, steps)
-            out["shared_half"] = {"before": before, "after": score(shared)}
-            if "per-target" in modes:
-                per = optimise(shared.spread(n), args, gt, steps)
-                out["per-target"] = {"before": before, "after": score(per)}
-            if "shared" in modes:
-                optimise(shared, args, gt, steps)
-                out["shared"] = {"before": before, "after": score(shared)}
-        if "context" in modes:  # render the context views themselves: what a test has
-            fit = DeltaFit(specs, 1, rank, g, pair_bias)
-            before = score(fit)
-            on_context = args._replace(  # the context cameras as the targets
-                target_intrinsics=args.intrinsics, target_extrinsics=args.extrinsics,
-                target_near=args.near, target_far=args.far)
-            optimise(fit, on_context, args.images[0], steps)
-            out["context"] = {"before": before, "after": score(fit)}
-    finally:
-        del model._target_weights
+            out["shared"] = {"before": before, "after": score(shared)}
+    if "context" in modes:  # render the context views themselves: what a test has
+        fit = DeltaFit(specs, 1, rank, g, pair_bias)
+        before = score(fit)
+        on_context = args._replace(  # the context cameras as the targets
+            target_intrinsics=args.intrinsics, target_extrinsics=args.extrinsics,
+            target_near=args.near, target_far=args.far)
+        optimise(fit, on_context, args.images[0], steps)
+        out["context"] = {"before": before, "after": score(fit)}
     return out
 
 
@@ -331,7 +327,6 @@ def main(argv=None) -> int:
     from usplat_dr.data.types import model_inputs
     from usplat_dr.evaluation import nan_mean, synthetic_indices
     from usplat_dr.io import atomic_open, write_json
-    from usplat_dr.model.hypernet.hypernetwork import ConvSpec
     from usplat_dr.training.checkpoints import load_model, training_image_shape
 
     torch.set_num_threads(1)
@@ -340,7 +335,7 @@ def main(argv=None) -> int:
         p.error(f"--checkpoint: a trained (a) (variant baseline), got {model.cfg.variant!r}")
     for q in model.parameters():
         q.requires_grad_(False)
-    specs = tuple(ConvSpec.of(name, model._conv(name)) for name in layers)
+    specs = tuple(model.conv_spec(name) for name in layers)
     shape = training_image_shape(args.checkpoint) or (64, 64)
     index = synthetic_indices(args.data, [args.split])[args.split]
     ds = dataset_from_section({"name": "synth", "roots": [args.data],

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from usplat_dr.model.checkpoint import check_state_dict, extract_state_dict, read_checkpoint
 from usplat_dr.model.decoder import DecoderSplatting
+from usplat_dr.model.encoder.depth_predictor import DepthOutputs
 from usplat_dr.model.encoder.primary import (
     PrimaryNetwork,
     PrimaryNetworkCfg,
@@ -29,6 +30,7 @@ from usplat_dr.model.encoder.primary import (
 from usplat_dr.model.hypernet.hypernetwork import (
     AgnosticHypernetwork,
     ConvSpec,
+    LayerDelta,
     SpecificHypernetwork,
 )
 from usplat_dr.model.hypernet.injection import adapter_layout, run_head, vb_layout
@@ -250,6 +252,14 @@ class UniqueSplat(nn.Module):
             raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
         return cls(replace(PRESETS[name], variant=variant, **overrides))
 
+    def conv_spec(self, name: str) -> ConvSpec:
+        """The shape of head convolution ``name`` (one of ``INJECTABLE``), whatever owns
+        its weights."""
+        if name not in INJECTABLE:
+            raise ValueError(f"name must be one of {list(INJECTABLE)}, got {name!r}")
+        conv = self._conv(name)
+        return conv.spec if isinstance(conv, GeneratedConv) else ConvSpec.of(name, conv)
+
     def _conv(self, name: str) -> nn.Conv2d:
         head, i = name.split(".")
         return getattr(self.primary.depth_predictor, head)[int(i)]
@@ -322,14 +332,20 @@ class UniqueSplat(nn.Module):
                 far: Float[Tensor, "b v"], target_intrinsics: Float[Tensor, "b n 3 3"],
                 target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
                 target_far: Float[Tensor, "b n"], render: bool = True, global_step: int = 0,
-                background_color: Tensor | None = None, settings=None, prune="auto"
+                background_color: Tensor | None = None, settings=None, prune="auto", *,
+                encoding: DepthOutputs | None = None, delta_w: dict | None = None
                 ) -> UniqueSplatOutput:
         """Gaussians per target view, and their renders (``render=True``) through the
         Dr.Jit rasteriser with MVSplat's SH basis (``settings``: a ``RasterSettings``).
 
         ``prune``: a ``PruneSettings`` applied per target before rasterising, ``None`` for
         none, or ``"auto"``: none while training, ``self.inference_prune`` otherwise. The
-        number of Gaussians each target rendered is ``out.aux["rendered"]`` [B, N]."""
+        number of Gaussians each target rendered is ``out.aux["rendered"]`` [B, N].
+
+        For studies that hold the primary network fixed: ``encoding``, what ``encode`` returned
+        for these context views, skips the encoder (its result must not need a gradient);
+        ``delta_w`` (layer name -> ``LayerDelta`` for B*N targets, layers of ``INJECTABLE``)
+        replaces the view-specific branch's Delta W, in any variant."""
         if isinstance(prune, str) and prune != "auto":
             raise ValueError(f"prune must be a PruneSettings, None or 'auto', got {prune!r}")
         if prune == "auto":
@@ -337,11 +353,17 @@ class UniqueSplat(nn.Module):
         b, v, _, h, w = images.shape
         n = self.check_targets(b, target_intrinsics, target_extrinsics, target_near, target_far)
         with self._autocast(images.device):
-            _, _, depth = self.primary.encode(images, intrinsics, extrinsics, near, far,
-                                              run_heads=False)
-            weights, deltas, aux = self._target_weights(images, intrinsics, extrinsics,
-                                                        target_intrinsics, target_extrinsics,
-                                                        target_near, target_far)
+            if encoding is None:
+                depth = self.encode(images, intrinsics, extrinsics, near, far)
+            else:
+                depth = self._check_encoding(encoding, b, v, h, w)
+            if delta_w is None:
+                weights, deltas, aux = self._target_weights(
+                    images, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
+                    target_near, target_far)
+            else:
+                weights = dict(zip(self.cfg.target_layers, self.agnostic_weights()))
+                deltas, aux = self._check_delta_w(delta_w, b * n), {}
             nb = n if deltas else 1  # per-target work only where Delta W exists
             depth_out = self._run_heads(depth, weights, deltas, near, far, v, b, nb)
         gaussians = self._gaussians_per_target(depth_out, intrinsics, extrinsics, (h, w),
@@ -360,6 +382,39 @@ class UniqueSplat(nn.Module):
             self.render_targets(out, target_intrinsics, target_extrinsics, target_near,
                                 target_far, (h, w), background_color, settings, prune)
         return out
+
+    def encode(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
+               extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+               far: Float[Tensor, "b v"]) -> DepthOutputs:
+        """The primary network up to its heads (backbone, transformer, cost volume, U-Nets):
+        what ``forward`` computes once per scene, reusable as its ``encoding``."""
+        return self.primary.encode(images, intrinsics, extrinsics, near, far,
+                                   run_heads=False)[2]
+
+    @staticmethod
+    def _check_encoding(encoding, b: int, v: int, h: int, w: int) -> DepthOutputs:
+        if not isinstance(encoding, DepthOutputs) or encoding.head_input is None:
+            raise ValueError("encoding must be what UniqueSplat.encode returned for these "
+                             "context views (a DepthOutputs with its head inputs)")
+        if tuple(encoding.disp_full.shape) != (v * b, 1, h, w):
+            raise ValueError(f"encoding is for other context views: its disparity has shape "
+                             f"{list(encoding.disp_full.shape)}, these views need "
+                             f"{[v * b, 1, h, w]}")
+        if encoding.head_input.requires_grad or encoding.refine_out.requires_grad:
+            raise ValueError("encoding needs a gradient: a reused encoding would backpropagate "
+                             "into its graph twice; compute it under torch.no_grad()")
+        return encoding
+
+    @staticmethod
+    def _check_delta_w(delta_w: dict, rows: int) -> dict:
+        if not isinstance(delta_w, dict) or not set(delta_w) <= set(INJECTABLE):
+            raise ValueError(f"delta_w must map layer names of {list(INJECTABLE)} to "
+                             f"LayerDelta, got keys {list(delta_w)}")
+        for name, d in delta_w.items():
+            if not isinstance(d, LayerDelta) or d.bias.shape[0] != rows:
+                raise ValueError(f"delta_w[{name!r}] must be a LayerDelta for B*N = {rows} "
+                                 f"targets")
+        return delta_w
 
     def _autocast(self, device: torch.device):
         """bfloat16 autocast for the networks when ``inference_precision`` asks for it and
