@@ -3,7 +3,8 @@
 #
 #   bash scripts/run.sh demo [ARGS]    the main job: synthetic data, train (a) and (c), evaluate,
 #                                      report (outputs/demo/report.md; --quick: small budget)
-#   bash scripts/run.sh test [ARGS]    run the test suite (pytest ARGS)
+#   bash scripts/run.sh test [ARGS]    run the test suite (pytest ARGS); as root it also installs
+#                                      Debian's chromium for the viewer's browser test
 #   bash scripts/run.sh lint [ARGS]    the linter, run by CI before the tests (ruff check . ARGS)
 #   bash scripts/run.sh doctor         report versions, libLLVM, backends, GPU
 #   bash scripts/run.sh bench [ARGS]   rasteriser benchmark (train/bench/rasterizer.py)
@@ -69,8 +70,28 @@ ensure_venv() {
         say "installing usplat-dr and its dependencies into $VENV (first run: a few minutes)"
         "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
             -c "$ROOT/constraints.txt" -e "$ROOT[test]" >&2
+        # lpips (the tests' reference for our LPIPS) without its torchvision requirement: the
+        # index's torchvision wheels are CUDA builds that do not load with the CPU torch.
+        "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+            -c "$ROOT/constraints.txt" lpips >&2
         echo "$stamp" > "$VENV/.usplat-installed"
     fi
+}
+
+# usplat view's browser test (tests/jobs/test_view.py) drives headless Chromium; without one it
+# skips. As root, `test` installs Debian's chromium (about 115 MB to download, 415 MB on disk).
+ensure_chromium() {
+    local name
+    for name in chromium chromium-headless-shell chromium-browser google-chrome; do
+        command -v "$name" >/dev/null && return
+    done
+    local cmd="apt-get update && apt-get install -y --no-install-recommends chromium"
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        say "no Chromium found (usplat view's browser test drives one): installing chromium"
+        DEBIAN_FRONTEND=noninteractive bash -c "$cmd" >&2
+        return
+    fi
+    say "no Chromium found: usplat view's browser test will skip (to run it: sudo sh -c '$cmd')"
 }
 
 setup() { ensure_python; ensure_libllvm; ensure_venv; }
@@ -131,10 +152,10 @@ command=${1:-}
 case "$command" in
     setup) setup ;;
     demo) setup; cd "$ROOT"; exec "$VENV/bin/usplat" demo "$@" ;;
-    test) setup; cd "$ROOT"; exec "$VENV/bin/python" -m pytest "$@" ;;
+    test) setup; ensure_chromium; cd "$ROOT"; exec "$VENV/bin/python" -m pytest "$@" ;;
     lint) setup; cd "$ROOT"; exec "$VENV/bin/ruff" check . "$@" ;;
     doctor) setup; exec "$VENV/bin/usplat" doctor ;;
     bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench/rasterizer.py "$@" ;;
     gpu-check) cd "$ROOT"; gpu_check "$@" ;;
-    *) sed -n '2,17p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+    *) sed -n '2,18p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import usplat_dr  # noqa: F401  (chooses libLLVM before anything imports drjit)
+from usplat_dr import portable
 
 
 def _cuda_available() -> bool:
@@ -53,8 +54,12 @@ def _flush_denormals():
 def _restore_environment():
     # In-process `usplat` calls (cli.main) turn portable numerics on by writing os.environ;
     # later tests' subprocesses (torchrun workers) would otherwise inherit them.
+    # Dr.Jit's pinned LLVM target stays in the process too: Mitsuba would then render the
+    # synthetic sets of later tests with other kernels than their worker processes do.
     saved = dict(os.environ)
     yield
     if os.environ != saved:
         os.environ.clear()
         os.environ.update(saved)
+        if not portable.enabled():
+            portable.unpin_drjit()

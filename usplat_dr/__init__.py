@@ -11,3 +11,15 @@ _llvm.configure()
 _openmp.configure()
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """``usplat_dr.load``: ``usplat_dr.training.checkpoints.load`` (a model from a shipped
+    checkpoint's name, a training checkpoint or an MVSplat file), imported on first use so
+    that importing the package stays free of torch."""
+    if name == "load":
+        # lazy: the package must import before torch (see above); training needs torch
+        from usplat_dr.training.checkpoints import load
+        return load
+    raise AttributeError(f"module 'usplat_dr' has no attribute {name!r}")
+

@@ -11,7 +11,7 @@ import importlib
 import logging
 import sys
 
-from usplat_dr import portable
+from usplat_dr import __version__, portable
 
 #: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
 COMMANDS = {
@@ -23,8 +23,12 @@ COMMANDS = {
                         "torchrun (DistributedDataParallel)")),
     "eval": ("evaluate", ("evaluate a trained model with the field's protocol (per-scene CSV, "
                           "summary JSON, renders)")),
-    "render": ("render_video", ("a video (mp4 with ffmpeg, else GIF) along a path between the "
-                                "context views and a wobble around them")),
+    "render": ("render_video", ("novel views of a dataset scene or of your own images and "
+                                "cameras along a path: PNG frames, a video (mp4 with the video "
+                                "extra or ffmpeg, else GIF), a PLY")),
+    "view": ("view", ("an interactive viewer in the browser (viser): move the camera and the "
+                      "model predicts and renders that view's own Gaussians; (a)/(c), colour/"
+                      "depth/opacity; or a 3DGS PLY")),
     "export-ply": ("export_ply",
                    "the Gaussians predicted for one target view, as a standard 3DGS PLY"),
     "demo": ("demo", ("the main job: synthetic data, train (a) and (c), evaluate, write a "
@@ -58,22 +62,46 @@ def is_user_error(e: BaseException) -> bool:
     return isinstance(e, USER_ERRORS) or (isinstance(e, OSError) and e.errno in FULL_DISK)
 
 
+def shows_default(action: argparse.Action) -> bool:
+    """Whether ``--help`` states the option's default: one that is not None, False, empty or
+    suppressed (a flag's False and an unset path say nothing)."""
+    return (bool(action.option_strings) and action.default not in (None, False, [], ())
+            and action.default is not argparse.SUPPRESS)
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Help lines end in "(default: X)" wherever ``shows_default`` says so and the help does
+    not already state it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "%(default)" not in text and shows_default(action):
+            text = f"{text.strip()} (default: %(default)s)".strip()
+        return text
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # Same numbers from the same command on every AVX2 CPU (before torch is imported).
     portable.enable()
     parser = argparse.ArgumentParser(prog="usplat", description="usplat-dr: UniqueSplat with a "
                                      "Dr.Jit Gaussian rasteriser")
+    parser.add_argument("--version", action="version", version=f"usplat-dr {__version__}")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     parser.add_argument("--debug", action="store_true",
                         help="show the traceback of an error instead of its one-line message")
     sub = parser.add_subparsers(dest="command", required=True)
-    parsers = {name: sub.add_parser(name, help=text) for name, (_, text) in COMMANDS.items()}
+    parsers = {name: sub.add_parser(name, help=text, description=text,
+                                    formatter_class=DefaultsHelpFormatter)
+               for name, (_, text) in COMMANDS.items()}
     chosen = next((a for a in argv if not a.startswith("-")), None)
     if chosen in COMMANDS:
         job = importlib.import_module(f"usplat_dr.jobs.{COMMANDS[chosen][0]}")
         job.add_arguments(parsers[chosen])
         parsers[chosen].set_defaults(run=job.run)
+        for action in parsers[chosen]._actions:  # an option without help still shows its default
+            if action.help is None and shows_default(action):
+                action.help = "(default: %(default)s)"
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="%(message)s")

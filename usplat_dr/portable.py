@@ -34,6 +34,7 @@ TORCH_ENV = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_C
 DRJIT_TARGET = ("haswell", "+avx,+avx2,+fma,+f16c,+popcnt,+sse4.2,+bmi,+bmi2,+lzcnt", 8)
 
 _pinned: tuple | None = None
+_host: tuple | None = None  # Dr.Jit's target before the first pin (``unpin_drjit``)
 
 
 def enabled() -> bool:
@@ -97,9 +98,26 @@ def pin_drjit(target: tuple[str, str, int] = DRJIT_TARGET) -> bool:
         return False
     set_target.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
     set_target.restype = None
+    global _host
+    if _host is None:
+        _host = drjit_target()
     set_target(target[0].encode(), target[1].encode(), target[2])
     _pinned = target
     return True
+
+
+def unpin_drjit() -> None:
+    """Undo ``pin_drjit``: Dr.Jit compiles for the host CPU again (kernels compiled from then
+    on). For a process that turns portable numerics off after a pinned ``usplat`` call in
+    it (the test suite between tests)."""
+    global _pinned
+    if _pinned is None or not _host:
+        return
+    set_target = _core()._Z19jit_llvm_set_targetPKcS0_j
+    set_target.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+    set_target.restype = None
+    set_target(_host[0].encode(), _host[1].encode(), _host[2])
+    _pinned = None
 
 
 def describe() -> dict:

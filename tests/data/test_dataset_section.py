@@ -10,7 +10,13 @@ import pytest
 from tests.data.fakes import fake_scene, write_plain_dataset
 from usplat_dr.config import ConfigError, load_config, load_typed
 from usplat_dr.data import ViewSamplerAllCfg, ViewSamplerBoundedCfg, ViewSamplerEvaluationCfg
-from usplat_dr.data.dataset import DatasetSectionCfg, dataset_from_section
+from usplat_dr.data.dataset import (
+    DATASET_PRESETS,
+    PRESET_CONFIGS,
+    DatasetSectionCfg,
+    dataset_cfg,
+    dataset_from_section,
+)
 
 
 def section_from_yaml(tmp_path: Path, text: str) -> DatasetSectionCfg:
@@ -42,6 +48,33 @@ def test_the_sampler_of_a_stage():
     assert section.sampler("test") == section.sampler("val") == ViewSamplerEvaluationCfg(
         "index.json")
     assert DatasetSectionCfg.from_dict({"roots": ["d"]}).sampler("test").name == "bounded"
+
+
+def test_a_presets_sampler_is_its_packaged_configs(tmp_path):
+    # The Python presets (dataset_cfg, the plain mappings of evaluation code) and the YAML
+    # configs train with the same view sampler: the packaged dataset config's.
+    assert set(PRESET_CONFIGS) == set(DATASET_PRESETS)
+    write_plain_dataset(tmp_path, "train", [[fake_scene("s0", 3, shape=(8, 8), fmt="png")]])
+    for name, config in PRESET_CONFIGS.items():
+        cfg = load_config(config)
+        from_yaml = load_typed(DatasetSectionCfg, cfg["dataset"], "dataset", cfg.origins)
+        assert from_yaml.name == name
+        assert dataset_cfg(name, "d").view_sampler == from_yaml.view_sampler, name
+        plain = dataset_from_section({"name": name, "roots": [str(tmp_path)]}, "train")
+        assert plain.cfg.view_sampler == from_yaml.view_sampler, name
+    # the synthetic sets' gaps (`usplat synth` writes 24 frames a scene), not RE10K's
+    # 25-45 then 45-192
+    synth = load_typed(DatasetSectionCfg, load_config("synthetic_tiny.yaml")["dataset"])
+    assert synth.view_sampler == dataset_cfg("synth", "d").view_sampler
+    gaps = dataset_cfg("synth", "d").view_sampler
+    assert (gaps.initial_min_distance_between_context_views,
+            gaps.initial_max_distance_between_context_views,
+            gaps.min_distance_between_context_views,
+            gaps.max_distance_between_context_views, gaps.warm_up_steps) == (4, 8, 4, 8, 1)
+    assert dataset_cfg("re10k", "d").view_sampler == ViewSamplerBoundedCfg()  # MVSplat's
+    # a sampler given explicitly wins
+    assert dataset_cfg("synth", "d", view_sampler=ViewSamplerAllCfg()).view_sampler \
+        == ViewSamplerAllCfg()
 
 
 @pytest.mark.parametrize("text, message", [

@@ -93,7 +93,7 @@ def test_step_tracker_reaches_dataloader_workers(tmp_path):
     write_plain_dataset(tmp_path, "train", [scenes[:2], scenes[2:]])
     tracker = StepTracker(0)
     cfg = dataset_cfg("synth", tmp_path, near=1.0, far=10.0, image_shape=(16, 16),
-                      augment=False)
+                      augment=False, view_sampler=ViewSamplerBoundedCfg())  # RE10K's schedule
     ds = ChunkDataset(cfg, "train", tracker)
     tracker.set_step(150_000)  # after the workers' copies exist: shared memory must carry it
     loader = DataLoader(ds, batch_size=None, num_workers=2, multiprocessing_context="fork")

@@ -59,8 +59,8 @@ def test_eval_warns_about_scenes_the_checkpoint_trained_on(tmp_path, caplog):
 
 
 def test_an_index_matching_no_scene_and_sceneless_samples_are_warnings(tmp_path, caplog):
-    # The DTU preset runs each scan as <key>_00.._03; an index naming the scans' own keys
-    # scores nothing: once silently, now two warnings (the index, the sampler).
+    # The DTU preset runs each scan as <key>_00.._03; an index naming other scans scores
+    # nothing: once silently, now two warnings (the index, the sampler).
     from usplat_dr.evaluation.protocol import warn_unmatched_index
 
     scenes = [fake_scene(f"scan{i}_train", 10, shape=(64, 80), fmt="png", seed=i, fx=0.9)
@@ -68,7 +68,7 @@ def test_an_index_matching_no_scene_and_sceneless_samples_are_warnings(tmp_path,
     write_plain_dataset(tmp_path, "test", [scenes])
     index = tmp_path / "index.json"
     index.write_text(json.dumps({f"scan{i}_train": {"context": [0, 4], "target": [2]}
-                                 for i in (1, 4)}))
+                                 for i in (2, 3)}))
     section = {"name": "dtu", "roots": [str(tmp_path)], "image_shape": [32, 32],
                "evaluation_index": str(index)}
     ds = dataset_from_section(section, "test")
@@ -78,7 +78,7 @@ def test_an_index_matching_no_scene_and_sceneless_samples_are_warnings(tmp_path,
     (sampler, unmatched) = _warnings(caplog)
     assert "the view sampler gave no views for 8 scene(s) (first: scan1_train_00" in sampler
     assert (f"standard: evaluation index {index} matches no scene of the data (2 keys, e.g. "
-            "scan1_train; the data's 8 scenes are named e.g. scan1_train_00)") in unmatched
+            "scan2_train; the data's 8 scenes are named e.g. scan1_train_00)") in unmatched
 
     # Null entries are the index's own "not evaluated": counted, not warned about; and an
     # index that names the runs matches.
@@ -89,3 +89,35 @@ def test_an_index_matching_no_scene_and_sceneless_samples_are_warnings(tmp_path,
     assert list(ds) == [] and ds.last_summary["null in evaluation index"] == 8
     warn_unmatched_index(ds, "standard", index)
     assert _warnings(caplog) == []
+
+
+def test_dtu_data_whose_keys_are_the_index_keys_is_scored(tmp_path, caplog):
+    # The DTU preset runs each scan as <key>_00.._03 (MVSplat's index names scan1_train_00 for
+    # the record scan1_train). Data whose keys already are the index's keys (the runs written
+    # out, or one entry per scan) once scored 0 of 2 scenes; a key with an entry of its own in
+    # the index is now used as it is, and the runs of the other scans still apply.
+    from usplat_dr.evaluation.protocol import index_coverage, scene_keys, warn_unmatched_index
+
+    scenes = [fake_scene(key, 10, shape=(64, 80), fmt="png", seed=i, fx=0.9)
+              for i, key in enumerate(["scan1_train_00", "scan4_train", "scan6_train"])]
+    write_plain_dataset(tmp_path, "test", [scenes])
+    index = tmp_path / "index.json"
+    entries = {"scan1_train_00": {"context": [0, 4], "target": [2]},
+               "scan4_train": {"context": [1, 5], "target": [3]},
+               **{f"scan6_train_{t:02d}": {"context": [t, t + 4], "target": [t + 2]}
+                  for t in range(4)}}
+    index.write_text(json.dumps(entries))
+    section = {"name": "dtu", "roots": [str(tmp_path)], "image_shape": [32, 32],
+               "evaluation_index": str(index)}
+    ds = dataset_from_section(section, "test")
+    assert ds.cfg.test_times_per_scene == 4
+    caplog.set_level(logging.WARNING)
+    warn_unmatched_index(ds, "standard", index)
+    examples = list(ds)
+    scored = [e["scene"] for e in examples]
+    assert scored == ["scan1_train_00", "scan4_train", *(f"scan6_train_{t:02d}"
+                                                         for t in range(4))]
+    assert [e["context"]["index"].tolist() for e in examples[:3]] == [[0, 4], [1, 5], [0, 4]]
+    assert _warnings(caplog) == []
+    assert index_coverage(index, scored)["coverage"] == "scored 6 of 6 keys: 0 null, 0 failed"
+    assert scene_keys(ds, scored) == {"scan1_train_00", "scan4_train", "scan6_train"}

@@ -64,6 +64,30 @@ def test_usplat_portable_pins_the_drjit_target():
     assert host["target"][0] != "" and host["env"]["drjit_target"] is None
 
 
+UNPIN = """
+import json, usplat_dr
+from usplat_dr import portable
+from usplat_dr.backend import require_llvm
+host = portable.drjit_target()
+require_llvm()  # pins
+pinned = portable.drjit_target()
+portable.unpin_drjit()
+print(json.dumps({"host": host, "pinned": pinned, "after": portable.drjit_target(),
+                  "env": portable.describe()}))
+"""
+
+
+@pytest.mark.skipif(not portable._host_has_avx2_fma(),
+                    reason="portable numerics pin the AVX2 code path; this CPU has no AVX2")
+def test_unpin_gives_the_host_target_back():
+    env = {**os.environ, portable.ENV_VAR: "1"}
+    out = subprocess.run([sys.executable, "-c", UNPIN], env=env, capture_output=True,
+                         text=True, check=True).stdout
+    r = json.loads(out.strip().splitlines()[-1])
+    assert r["pinned"] == list(portable.DRJIT_TARGET)
+    assert r["after"] == r["host"] and r["env"]["drjit_target"] is None
+
+
 def test_enable_sets_the_torch_environment(monkeypatch):
     for key in (portable.ENV_VAR, *portable.TORCH_ENV):
         monkeypatch.delenv(key, raising=False)

@@ -160,7 +160,26 @@ def test_cli_commands_are_a_table_of_job_modules():
     "usplat_dr.data.synth.textures", "usplat_dr.data.synth.scenes",
     "usplat_dr.model.encoder.primary", "usplat_dr.model.sh_rotation",
     "usplat_dr.model.hypernet.resnet", "usplat_dr.jobs.report", "usplat_dr.jobs.arguments",
-    "usplat_dr.data.types", "usplat_dr.config", "usplat_dr.training.distributed"])
+    "usplat_dr.data.types", "usplat_dr.config", "usplat_dr.training.distributed",
+    "usplat_dr.training.checkpoints"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module))
     assert result.attempted > 0 and result.failed == 0
+
+
+def test_version_and_help_state_the_defaults(capsys):
+    import usplat_dr
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"usplat-dr {usplat_dr.__version__}"
+    for command, shown in (("render", ["(default: 60)", "(default: outputs/render/video)",
+                                       "(default: orbit)", "(default: cpu)"]),
+                           ("eval", ["(default: cpu)"])):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+        assert all(s in text for s in shown), (command, text)
+        # unset values and flags say nothing
+        assert "(default: None)" not in text and "(default: False)" not in text

@@ -85,7 +85,8 @@ def test_demo_quick_end_to_end(wheel_demo):
               "32"]
     assert main(["-q", "render", *common, "--frames", "6", "--out",
                  str(tmp_path / "video")]) == 0
-    assert list(tmp_path.glob("video.*"))
+    assert list((tmp_path / "video").glob("video.*"))  # --out is a folder
+    assert len(list((tmp_path / "video" / "frames").glob("*.png"))) == 6
     assert main(["-q", "export-ply", *common, "--target", "1", "--out",
                  str(tmp_path / "g.ply")]) == 0
     from usplat_dr.model.ply import read_ply

@@ -32,12 +32,13 @@ def net(weights) -> PrimaryNetwork:
 
 
 def inputs(fx: dict) -> tuple:
-    return tuple(fx[k] for k in ("images", "intrinsics", "extrinsics", "near", "far"))
+    return tuple(fx[k] for k in ("images", "extrinsics", "intrinsics", "near", "far"))
 
 
 def two_view_cameras(b: int = 1, v: int = 2, baseline: float = 0.1):
-    """Cameras side by side along x, looking down +z, the fixture's intrinsics."""
+    """Cameras side by side along x, looking down +z, the fixture's intrinsics:
+    (extrinsics, intrinsics)."""
     e = torch.eye(4).repeat(b, v, 1, 1)
     e[:, :, 0, 3] = baseline * torch.arange(v, dtype=torch.float32)
     k = torch.tensor([[0.85, 0, 0.5], [0, 0.85, 0.5], [0, 0, 1]]).repeat(b, v, 1, 1)
-    return k, e
+    return e, k

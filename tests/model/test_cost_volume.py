@@ -15,12 +15,12 @@ def cameras(b: int, v: int, seed: int):
     e[..., 0, 0], e[..., 0, 2] = angle.cos(), angle.sin()
     e[..., 2, 0], e[..., 2, 2] = -angle.sin(), angle.cos()
     k = torch.tensor([[0.8, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1]]).repeat(b, v, 1, 1)
-    return k, e
+    return e, k
 
 
-def dense_reference(feat, k_norm, e, disp):
+def dense_reference(feat, e, k_norm, disp):
     """float64 loops over views and candidates; bilinear sampling by hand."""
-    feat, k_norm, e, disp = feat.double(), k_norm.double(), e.double(), disp.double()
+    feat, e, k_norm, disp = feat.double(), e.double(), k_norm.double(), disp.double()
     b, v, c, h, w = feat.shape
     out = torch.zeros(v * b, disp.shape[1], h, w, dtype=torch.float64)
     ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
@@ -54,11 +54,11 @@ def dense_reference(feat, k_norm, e, disp):
 def test_gram_warp_and_dense_reference_agree():
     b, v, c, h, w = 2, 3, 8, 6, 7
     feat = torch.randn(b, v, c, h, w, generator=torch.Generator().manual_seed(0))
-    k, e = cameras(b, v, 1)
+    e, k = cameras(b, v, 1)
     disp = disparity_candidates(torch.full((b, v), 0.5), torch.full((b, v), 20.0), 12)
-    ref = dense_reference(feat, k, e, disp)
-    gram = plane_sweep_correlation(feat, k, e, disp, "gram", max_bytes=200)  # many row chunks
-    warp = plane_sweep_correlation(feat, k, e, disp, "warp", chunk=5)
+    ref = dense_reference(feat, e, k, disp)
+    gram = plane_sweep_correlation(feat, e, k, disp, "gram", max_bytes=200)  # many row chunks
+    warp = plane_sweep_correlation(feat, e, k, disp, "warp", chunk=5)
     # float32 sums of 8 products of O(1) values, and coordinates rounded in float32 near
     # pixel edges: 1e-4 absolute on values of O(3).
     assert (gram.double() - ref).abs().max() < 1e-4
@@ -68,12 +68,12 @@ def test_gram_warp_and_dense_reference_agree():
 
 def test_gram_gradients_match_warp():
     b, v, c, h, w = 1, 2, 4, 5, 6
-    k, e = cameras(b, v, 2)
+    e, k = cameras(b, v, 2)
     disp = disparity_candidates(torch.full((b, v), 0.5), torch.full((b, v), 20.0), 6)
     grads = []
     for method in ("gram", "warp"):
         feat = torch.randn(b, v, c, h, w, generator=torch.Generator().manual_seed(3),
                            requires_grad=True)
-        plane_sweep_correlation(feat, k, e, disp, method).square().sum().backward()
+        plane_sweep_correlation(feat, e, k, disp, method).square().sum().backward()
         grads.append(feat.grad)
     assert torch.allclose(grads[0], grads[1], atol=1e-4)  # float32, values of O(10)

@@ -49,9 +49,9 @@ def test_target_rays_project_back_to_their_pixels():
     c2w[0, 0, :3, :3] = torch.tensor([[angle.cos(), 0, angle.sin()], [0, 1, 0],
                                       [-angle.sin(), 0, angle.cos()]])
     c2w[0, 0, :3, 3] = torch.tensor([0.2, -0.1, 0.5])
-    origins, dirs = target_rays(k, c2w, (4, 5))
+    origins, dirs = target_rays(c2w, k, (4, 5))
     points = origins[..., None, :] + dirs[..., None, :] * torch.tensor([0.5, 3.0])[:, None]
-    xy, valid = project(points, k, c2w)
+    xy, valid = project(points, c2w, k)
     ys, xs = torch.meshgrid((torch.arange(4) + 0.5) / 4, (torch.arange(5) + 0.5) / 5,
                             indexing="ij")
     expected = torch.stack([xs, ys], -1).view(-1, 1, 2).expand(-1, 2, 2)
@@ -83,8 +83,8 @@ def test_highest_correlation_is_at_the_true_depth_on_a_mitsuba_scene():
     near, far = spec["near_far"]
     with torch.no_grad():
         _, aux = EpipolarProjection(96)(
-            patch[[0, 2]][None], k.expand(1, 2, 3, 3), c2w[[0, 2]][None], k.expand(1, 1, 3, 3),
-            c2w[[1]][None], torch.tensor([[near]]), torch.tensor([[far]]), (64, 64))
+            patch[[0, 2]][None], c2w[[0, 2]][None], k.expand(1, 2, 3, 3), c2w[[1]][None],
+            k.expand(1, 1, 3, 3), torch.tensor([[near]]), torch.tensor([[far]]), (64, 64))
     best = aux["depths"][0, 0][aux["correlation"][0, 0].argmax(-1)]
     gt = torch.tensor(depths[1]).view(-1)
     seen = aux["valid"][0, 0].all(0).any(-1)  # some sample of the ray is seen by both views
@@ -101,14 +101,14 @@ def test_fusion_is_differentiable_and_finite_without_overlap():
     e = torch.eye(4).repeat(1, 2, 1, 1)
     e[0, 1, :3, :3] = torch.diag(torch.tensor([-1.0, 1, -1]))  # 180 degrees about y
     proj = EpipolarProjection(8)
-    out, aux = proj(f, k, e, k[:, :1], e[:, :1], torch.ones(1, 1), 10 * torch.ones(1, 1),
+    out, aux = proj(f, e, k, e[:, :1], k[:, :1], torch.ones(1, 1), 10 * torch.ones(1, 1),
                     (4, 4))
     assert torch.isfinite(out).all() and not aux["valid"][0, 0, 1].any()
     out.sum().backward()
     assert f.grad is not None and proj.log_temperature.grad is not None
 
 
-def pinhole(k, c2w, x):
+def pinhole(c2w, k, x):
     """Normalised image coordinates and depth of world point ``x`` (float64, from P = K[R|t]
     written out: x_cam = R^T (x - o))."""
     r, o = c2w[:3, :3], c2w[:3, 3]
@@ -134,22 +134,22 @@ def test_a_point_seen_by_both_contexts_is_sampled_at_its_pixels():
     contexts = torch.stack([cam(0.05, [-0.4, 0, 0]), cam(-0.05, [0.4, 0.1, 0])])
     target = cam(0.2, [0.1, -0.05, 0.3])
     grid = (4, 6)
-    uv, z = pinhole(k, target, x)
+    uv, z = pinhole(target, k, x)
     cell = torch.tensor([(3 + 0.5) / grid[1], (1 + 0.5) / grid[0]], dtype=torch.float64)
     kt = k.clone()
     kt[:2, 2] += cell - uv  # shift the principal point: X's pixel is the centre of cell (1, 3)
-    origins, dirs = target_rays(kt[None, None].float(), target[None, None].float(), grid)
+    origins, dirs = target_rays(target[None, None].float(), kt[None, None].float(), grid)
     point = origins[0, 0, 0] + dirs[0, 0, 1 * grid[1] + 3] * z.float()
     assert torch.allclose(point.double(), x, atol=1e-5)
-    xy, valid = project(point.view(1, 1, 1, 1, 3), k[None].expand(1, 2, 3, 3).float(),
-                        contexts[None].float())
+    xy, valid = project(point.view(1, 1, 1, 1, 3), contexts[None].float(),
+                        k[None].expand(1, 2, 3, 3).float())
     for v in range(2):
-        expected, _ = pinhole(k, contexts[v], x)
+        expected, _ = pinhole(contexts[v], k, x)
         assert torch.allclose(xy[0, 0, v, 0, 0].double(), expected, atol=1e-5)
         assert valid[0, 0, v, 0, 0]
 
 
-def proj_loop(features, intrinsics, extrinsics, t_intrinsics, t_extrinsics, t_near, t_far,
+def proj_loop(features, extrinsics, intrinsics, t_extrinsics, t_intrinsics, t_near, t_far,
               grid, num, temperature):
     """Proj written as explicit float64 loops from its definition (usplat_dr's
     model/hypernet/epipolar.py docstring): per target pixel centre, ``num`` depths uniform in
@@ -221,10 +221,10 @@ def test_proj_fuses_three_context_views_as_its_definition_says():
     near, far = torch.full((1, 2), 1.0, dtype=torch.float64), torch.full((1, 2), 6.0,
                                                                          dtype=torch.float64)
     proj = EpipolarProjection(num_samples=5, temperature=10.0).double()
-    ours, aux = proj(features, k.expand(1, 3, 3, 3), context, k.expand(1, 2, 3, 3), target,
+    ours, aux = proj(features, context, k.expand(1, 3, 3, 3), target, k.expand(1, 2, 3, 3),
                      near, far, (3, 4))
     temperature = proj.log_temperature.exp().item()  # 10 after a float32 log round trip
-    ref = proj_loop(features, k.expand(1, 3, 3, 3), context, k.expand(1, 2, 3, 3), target,
+    ref = proj_loop(features, context, k.expand(1, 3, 3, 3), target, k.expand(1, 2, 3, 3),
                     near, far, (3, 4), 5, temperature)
     # both float64; the module's batched reductions differ from the loops' order: ~1e-12
     assert np.allclose(ours.detach().numpy(), ref, atol=1e-10)

@@ -47,7 +47,7 @@ def test_lean_depth_outputs_equal_the_autograd_ones(use_depth_refine):
     e = torch.eye(4).repeat(2, 2, 1, 1)
     e[:, 1, 0, 3] = 0.2
     k = torch.tensor([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1]]).repeat(2, 2, 1, 1)
-    args = (torch.rand(2, 2, 3, 32, 32, generator=g), k, e, torch.ones(2, 2),
+    args = (torch.rand(2, 2, 3, 32, 32, generator=g), e, k, torch.ones(2, 2),
             50 * torch.ones(2, 2))
     with torch.inference_mode():
         _, _, lean = small.encode(*args)

@@ -27,11 +27,11 @@ def test_plane_sweep_under_bfloat16_autocast_keeps_float32_geometry():
     # bfloat16.
     g = torch.Generator().manual_seed(0)
     features = torch.randn(1, 2, 32, 64, 64, generator=g)
-    k, e = two_view_cameras(1, 2)
+    e, k = two_view_cameras(1, 2)
     disparities = torch.linspace(0.01, 1.0, 8).repeat(2, 1)
-    ref = plane_sweep_correlation(features, k, e, disparities)
+    ref = plane_sweep_correlation(features, e, k, disparities)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        out = plane_sweep_correlation(features, k, e, disparities)
+        out = plane_sweep_correlation(features, e, k, disparities)
     # bfloat16 rounds each operand to 2^-9 relative; dot products over 32 channels of
     # random features then differ by up to ~1% of the largest value (0.84% measured). The
     # lower bound shows the product did run in bfloat16.

@@ -11,8 +11,8 @@ from usplat_dr.render import RasterSettings, rasterize
 
 def scene(b: int, v: int, size: int = 32, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
-    k, e = two_view_cameras(b, v)
-    return (torch.rand(b, v, 3, size, size, generator=g), k, e, torch.ones(b, v),
+    e, k = two_view_cameras(b, v)
+    return (torch.rand(b, v, 3, size, size, generator=g), e, k, torch.ones(b, v),
             100 * torch.ones(b, v))
 
 
@@ -29,11 +29,11 @@ def test_batch_elements_are_independent(net):
 
 
 def test_three_views_and_view_order(net):
-    images, k, e, near, far = scene(1, 3)
+    images, e, k, near, far = scene(1, 3)
     with torch.no_grad():
-        g = net(images, k, e, near, far)
+        g = net(images, e, k, near, far)
         perm = [2, 0, 1]
-        gp = net(images[:, perm], k[:, perm], e[:, perm], near[:, perm], far[:, perm])
+        gp = net(images[:, perm], e[:, perm], k[:, perm], near[:, perm], far[:, perm])
     assert g.means.shape == (1, 3 * 32 * 32, 3) and torch.isfinite(g.means).all()
     # Permuting the views permutes the Gaussians (cross-view attention and the mean over
     # the other views' cost volumes are symmetric); 1e-3: float32 sums in another order,
@@ -45,13 +45,13 @@ def test_three_views_and_view_order(net):
 def test_bad_inputs_name_the_argument(net):
     # check_inputs is what forward runs first (under pytest, jaxtyping's own shape check on
     # forward's annotations would fire before it for the shape case).
-    images, k, e, near, far = scene(1, 2)
+    images, e, k, near, far = scene(1, 2)
     with pytest.raises(ValueError, match="multiples of 16"):
-        net(images[..., :24], k, e, near, far)
+        net(images[..., :24], e, k, near, far)
     with pytest.raises(ValueError, match=">= 2 context views"):
-        net(images[:, :1], k[:, :1], e[:, :1], near[:, :1], far[:, :1])
+        net(images[:, :1], e[:, :1], k[:, :1], near[:, :1], far[:, :1])
     with pytest.raises(ValueError, match="extrinsics must have shape"):
-        net.check_inputs(images, k, e[:, :, :3], near, far)
+        net.check_inputs(images, e[:, :, :3], k, near, far)
     with pytest.raises(ValueError, match="cost_volume_method"):
         PrimaryNetworkCfg(cost_volume_method="fast")
     with pytest.raises(ValueError, match="unknown PrimaryNetworkCfg keys"):
@@ -77,9 +77,9 @@ def test_small_config_and_ablations_run_and_train():
 
 
 def test_gaussians_render_with_mvsplats_basis(net):
-    images, k, e, near, far = scene(1, 2)
+    images, e, k, near, far = scene(1, 2)
     with torch.no_grad():
-        g = net(images, k, e, near, far)
+        g = net(images, e, k, near, far)
     out = rasterize(e[:, 0], k[:, 0], near[:, 0], far[:, 0], (32, 32), torch.zeros(1, 3),
                     g.means, g.covariances, g.harmonics, g.opacities,
                     RasterSettings(sh_basis="mvsplat"))

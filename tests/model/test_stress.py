@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from usplat_dr.data.types import SceneInputs
 from usplat_dr.model import UniqueSplat
 
 
@@ -31,8 +32,10 @@ def scene(scale=1.0, baseline=0.1, fx=0.85, images=None, target_shift=0.05, rot=
     g = torch.Generator().manual_seed(1)
     x = torch.rand(1, 2, 3, 32, 32, generator=g) if images is None else images
     ones2, ones1 = torch.ones(1, 2), torch.ones(1, 1)
-    return (x, k, e, scale * ones2, 100 * scale * ones2, k[:, :1].clone(), te,
-            target_near * scale * ones1, 100 * scale * ones1)
+    return SceneInputs(images=x, extrinsics=e, intrinsics=k, near=scale * ones2,
+                       far=100 * scale * ones2, target_extrinsics=te,
+                       target_intrinsics=k[:, :1].clone(), target_near=target_near * scale * ones1,
+                       target_far=100 * scale * ones1)
 
 
 CASES = {
@@ -61,21 +64,16 @@ def test_stress_case_is_finite(model, case):
 
 
 def test_bad_values_are_clear_errors(model):
-    args = list(scene())
-    nan_image = args[0].clone()
+    args = scene()
+    nan_image = args.images.clone()
     nan_image[0, 1, 2, 3, 4] = float("nan")
     with pytest.raises(ValueError, match="images holds 1 NaN"):
-        model(nan_image, *args[1:])
-    bad = list(args)
-    bad[3] = torch.zeros(1, 2)  # near = 0
+        model(*args._replace(images=nan_image))
     with pytest.raises(ValueError, match="near must be > 0"):
-        model(*bad)
-    bad = list(args)
-    bad[6] = args[6].clone()
-    bad[6][0, 0, 1, 3] = float("inf")
+        model(*args._replace(near=torch.zeros(1, 2)))
+    te = args.target_extrinsics.clone()
+    te[0, 0, 1, 3] = float("inf")
     with pytest.raises(ValueError, match="target_extrinsics holds 1 NaN or Inf"):
-        model(*bad)
-    bad = list(args)
-    bad[8] = torch.full((1, 1), 0.5)  # target far < target near
-    with pytest.raises(ValueError, match="target_far > target_near"):
-        model(*bad)
+        model(*args._replace(target_extrinsics=te))
+    with pytest.raises(ValueError, match="target_far > target_near"):  # target far < near
+        model(*args._replace(target_far=torch.full((1, 1), 0.5)))

@@ -18,10 +18,11 @@ spec.loader.exec_module(oracle)
 
 def batch_of(args, target_images):
     """The dataset-batch form of a scene's inputs with the given target images."""
-    images, k, e, near, far, tk, te, tn, tf = args
-    target = {"image": target_images, "intrinsics": tk, "extrinsics": te, "near": tn,
-              "far": tf}
-    context = {"image": images, "intrinsics": k, "extrinsics": e, "near": near, "far": far}
+    target = {"image": target_images, "extrinsics": args.target_extrinsics,
+              "intrinsics": args.target_intrinsics, "near": args.target_near,
+              "far": args.target_far}
+    context = {"image": args.images, "extrinsics": args.extrinsics,
+               "intrinsics": args.intrinsics, "near": args.near, "far": args.far}
     return {"context": context, "target": target}
 
 

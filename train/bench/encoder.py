@@ -60,7 +60,7 @@ def child(cfg: dict, size: int, repeats: int, out: str, threads: int) -> None:
     e[0, 1, 0, 3] = 0.1
     k = torch.tensor([[0.86, 0, 0.5], [0, 0.86, 0.5], [0, 0, 1]]).repeat(1, 2, 1, 1)
     x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
-    args = (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2))
+    args = (x, e, k, torch.ones(1, 2), 100 * torch.ones(1, 2))
     walls, cpus = [], []
     # (each forward runs while the previous one's Gaussians are still held, as in an
     # evaluation loop: ~60 MiB at 256x256)

@@ -95,7 +95,7 @@ def measure(model, batches, size: int, grid: dict) -> dict:
                 antialias=False).unflatten(0, (b, v)))
         with torch.inference_mode():
             out = model(*inputs, render=False)
-        ti, te, tn, tf = (inputs.target_intrinsics, inputs.target_extrinsics, inputs.target_near,
+        te, ti, tn, tf = (inputs.target_extrinsics, inputs.target_intrinsics, inputs.target_near,
                           inputs.target_far)
         colors = {}
         g = out.gaussians

@@ -43,15 +43,19 @@ SETTINGS = {"paper256": ("paper", 256), "tiny64": ("tiny", 64), "paper64": ("pap
 def scene(size: int, device: str = "cpu"):
     import torch
 
+    from usplat_dr.data.types import SceneInputs
+
     e = torch.eye(4).repeat(1, 2, 1, 1)
     e[0, 1, 0, 3] = 0.1
     k = torch.tensor([[0.86, 0, 0.5], [0, 0.86, 0.5], [0, 0, 1]]).repeat(1, 2, 1, 1)
     te = torch.eye(4).repeat(1, 3, 1, 1)
     te[0, :, 0, 3] = torch.tensor([0.025, 0.05, 0.075])
     x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
-    args = (x, k, e, torch.ones(1, 2), 100 * torch.ones(1, 2), k[:, :1].expand(1, 3, 3, 3), te,
-            torch.ones(1, 3), 100 * torch.ones(1, 3))
-    return tuple(a.to(device) for a in args)
+    args = SceneInputs(images=x, extrinsics=e, intrinsics=k, near=torch.ones(1, 2),
+                       far=100 * torch.ones(1, 2), target_extrinsics=te,
+                       target_intrinsics=k[:, :1].expand(1, 3, 3, 3),
+                       target_near=torch.ones(1, 3), target_far=100 * torch.ones(1, 3))
+    return SceneInputs(*(a.to(device) for a in args))
 
 
 def build(preset: str, variant: str, overrides: dict):

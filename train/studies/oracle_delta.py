@@ -143,7 +143,7 @@ def fit_scene(model, batch, specs, rank, steps: int, lr: float, seed: int, modes
     gt = batch["target"]["image"][0]
     n = gt.shape[0]
     with torch.no_grad():  # the primary network is frozen: its encoder runs once per scene
-        encoding = model.encode(args.images, args.intrinsics, args.extrinsics, args.near,
+        encoding = model.encode(args.images, args.extrinsics, args.intrinsics, args.near,
                                 args.far)
 
     def render(fit, fit_args):
@@ -180,7 +180,7 @@ def fit_scene(model, batch, specs, rank, steps: int, lr: float, seed: int, modes
         fit = DeltaFit(specs, 1, rank, g, pair_bias)
         before = score(fit)
         on_context = args._replace(  # the context cameras as the targets
-            target_intrinsics=args.intrinsics, target_extrinsics=args.extrinsics,
+            target_extrinsics=args.extrinsics, target_intrinsics=args.intrinsics,
             target_near=args.near, target_far=args.far)
         optimise(fit, on_context, args.images[0], steps)
         out["context"] = {"before": before, "after": score(fit)}

@@ -29,6 +29,7 @@ is endless, so a rank whose pass ends early starts its next epoch early, never w
 
 import collections
 import dataclasses
+import functools
 import hashlib
 import logging
 import math
@@ -41,7 +42,14 @@ import torch
 import torch.distributed
 from torch.utils.data import IterableDataset, get_worker_info
 
-from usplat_dr.config import ConfigError, check_keys, load_typed, typed_value, where_set
+from usplat_dr.config import (
+    ConfigError,
+    check_keys,
+    load_config,
+    load_typed,
+    typed_value,
+    where_set,
+)
 from usplat_dr.data.chunks import (
     MAX_IMAGE_PIXELS,
     BadChunkError,
@@ -60,6 +68,7 @@ from usplat_dr.data.view_sampler import (
     StepTracker,
     ViewSamplerBoundedCfg,
     ViewSamplerCfg,
+    ViewSamplerEvaluation,
     ViewSamplerEvaluationCfg,
     ViewSamplingError,
     get_view_sampler,
@@ -102,9 +111,32 @@ DATASET_PRESETS = {
     "synth": dict(near=None, far=None, skip_bad_shape=False),
 }
 
+#: Each preset's packaged dataset config (``usplat_dr/configs/``): its training view sampler
+#: is written there once, for configs and ``dataset_cfg`` alike (``preset_view_sampler``).
+PRESET_CONFIGS = {"re10k": "dataset/re10k.yaml", "acid": "dataset/acid.yaml",
+                  "dtu": "dataset/dtu.yaml", "synth": "dataset/synthetic.yaml"}
+
+
+@functools.cache
+def preset_view_sampler(name: str) -> ViewSamplerCfg:
+    """The training view sampler of preset ``name``, read from its packaged config
+    (``PRESET_CONFIGS``): the synthetic sets' frame gaps (4 to 8 frames between the context
+    views) or MVSplat's RE10K/ACID ones (``ViewSamplerBoundedCfg``'s defaults).
+
+    Examples:
+        >>> s = preset_view_sampler("synth")
+        >>> s.min_distance_between_context_views, s.max_distance_between_context_views
+        (4, 8)
+    """
+    cfg = load_config(PRESET_CONFIGS[name])
+    section = load_typed(DatasetSectionCfg, cfg["dataset"], "dataset", cfg.origins)
+    assert section.name == name, (name, section.name)  # PRESET_CONFIGS names the wrong file
+    return section.view_sampler
+
 
 def dataset_cfg(name: str, roots, **overrides) -> DatasetCfg:
-    """A ``DatasetCfg`` with the field's settings for ``name`` (re10k, acid, dtu, synth).
+    """A ``DatasetCfg`` with the field's settings for ``name`` (re10k, acid, dtu, synth), and
+    its training view sampler (``preset_view_sampler``) unless ``overrides`` names one.
 
     Examples:
         >>> cfg = dataset_cfg("dtu", ["datasets/dtu"])
@@ -116,7 +148,8 @@ def dataset_cfg(name: str, roots, **overrides) -> DatasetCfg:
     if isinstance(roots, (str, Path)):
         roots = [roots]
     return DatasetCfg(roots=tuple(str(r) for r in roots), name=name,
-                      **{**DATASET_PRESETS[name], **overrides})
+                      **{"view_sampler": preset_view_sampler(name), **DATASET_PRESETS[name],
+                         **overrides})
 
 
 #: Scene near/far planes outside this range are skipped: depth is sampled in disparity from
@@ -308,14 +341,24 @@ class ChunkDataset(IterableDataset):
                         self.cfg.name, worker, summary["sampler: no views"],
                         summary.first["sampler: no views"])
 
-    def _runs(self, scene: object) -> list[str | None]:
-        """The example keys a scene gives: ``[None]`` (its own key), or in the test stage with
-        ``test_times_per_scene`` = T > 1, ``<key>_00`` .. ``<key>_(T-1)``."""
+    def run_names(self, key: str) -> list[str]:
+        """The example names scene ``key`` goes by: the key, or in the test stage with
+        ``test_times_per_scene`` = T > 1, ``<key>_00`` .. ``<key>_(T-1)`` (MVSplat's DTU
+        index names the runs of ``scan1_train`` so) - unless the evaluation index has an entry
+        for the key itself: data whose keys already name the runs is scored as it is."""
         times = self.cfg.test_times_per_scene if self.stage == "test" else 1
-        key = scene.get("key") if isinstance(scene, dict) else None
-        if times <= 1 or not isinstance(key, str):
-            return [None]
+        if times <= 1 or (isinstance(self.view_sampler, ViewSamplerEvaluation)
+                          and key in self.view_sampler.index):
+            return [key]
         return [f"{key}_{t:02d}" for t in range(times)]
+
+    def _runs(self, scene: object) -> list[str | None]:
+        """The example keys a scene gives (``run_names``): ``[None]`` for its own key."""
+        key = scene.get("key") if isinstance(scene, dict) else None
+        if not isinstance(key, str):
+            return [None]
+        names = self.run_names(key)
+        return [None] if names == [key] else names
 
     def _example(self, scene: object, chunk_path: Path, gen: torch.Generator,
                  summary: Summary, run: str | None = None) -> dict | None:
@@ -450,9 +493,13 @@ class DatasetSectionCfg:
     def from_dict(cls, section: dict) -> "DatasetSectionCfg":
         """The section from the plain mapping that evaluation code passes (``name``,
         ``roots``, ``image_shape``, ``evaluation_index``...: folders and files as
-        ``os.PathLike`` or ``str``), checked like a config's."""
+        ``os.PathLike`` or ``str``), checked like a config's. Without a ``view_sampler``, the
+        preset's (``preset_view_sampler``)."""
         if isinstance(section, dict):
             section = dict(section)
+            name = section.get("name", cls.name)
+            if "view_sampler" not in section and name in PRESET_CONFIGS:
+                section["view_sampler"] = dataclasses.asdict(preset_view_sampler(name))
             roots = section.get("roots")
             if isinstance(roots, os.PathLike):
                 section["roots"] = os.fspath(roots)

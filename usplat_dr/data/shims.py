@@ -71,8 +71,7 @@ def rescale_and_crop(
     """
     h_in, w_in = images.shape[-2:]
     h_out, w_out = shape
-    scale = max(h_out / h_in, w_out / w_in)
-    h_scaled, w_scaled = round(h_in * scale), round(w_in * scale)
+    h_scaled, w_scaled = _covering(images.shape[-2:], shape)
     # the cap decoding applies: a 1 x 4,000,000 frame passes it, but covering a 32x32 crop
     # would make it 32 x 128,000,000 (the scene is skipped)
     if h_scaled * w_scaled > MAX_IMAGE_PIXELS:
@@ -82,10 +81,31 @@ def rescale_and_crop(
         images = torch.stack([_resize(im, (h_scaled, w_scaled)) for im in images])
     row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2
     images = images[..., row:row + h_out, col:col + w_out]
+    return images, cropped_intrinsics(intrinsics, (h_in, w_in), shape)
+
+
+def _covering(shape_in, shape: tuple[int, int]) -> tuple[int, int]:
+    """The size an image of ``shape_in`` is resized to so that it covers ``shape``."""
+    (h_in, w_in), (h_out, w_out) = shape_in, shape
+    scale = max(h_out / h_in, w_out / w_in)
+    return round(h_in * scale), round(w_in * scale)
+
+
+def cropped_intrinsics(intrinsics: Float[Tensor, "view 3 3"], shape_in: tuple[int, int],
+                       shape: tuple[int, int]) -> Float[Tensor, "view 3 3"]:
+    """The normalised intrinsics of an image of ``shape_in`` after ``rescale_and_crop`` to
+    ``shape``, without the image (a target camera).
+
+    Examples:
+        >>> k = torch.tensor([[[0.9, 0, 0.5], [0, 1.6, 0.5], [0, 0, 1]]])
+        >>> round(cropped_intrinsics(k, (360, 640), (256, 256))[0, 0, 0].item(), 4)
+        1.5996
+    """
+    h_scaled, w_scaled = _covering(shape_in, shape)
     intrinsics = intrinsics.clone()
-    intrinsics[:, 0, 0] *= w_scaled / w_out
-    intrinsics[:, 1, 1] *= h_scaled / h_out
-    return images, intrinsics
+    intrinsics[:, 0, 0] *= w_scaled / shape[1]
+    intrinsics[:, 1, 1] *= h_scaled / shape[0]
+    return intrinsics
 
 
 def crop_views(views: dict, shape: tuple[int, int]) -> dict:

@@ -33,15 +33,16 @@ class Example(TypedDict):
 
 
 class SceneInputs(NamedTuple):
-    """``UniqueSplat``'s inputs, in the order of its ``forward``: ``model(*inputs)``."""
+    """``UniqueSplat``'s inputs, in the order of its ``forward``: ``model(*inputs)``.
+    Extrinsics before intrinsics, as everywhere; read the fields by name, not by position."""
 
     images: Float[Tensor, "b v 3 h w"]
-    intrinsics: Float[Tensor, "b v 3 3"]
     extrinsics: Float[Tensor, "b v 4 4"]
+    intrinsics: Float[Tensor, "b v 3 3"]
     near: Float[Tensor, "b v"]
     far: Float[Tensor, "b v"]
-    target_intrinsics: Float[Tensor, "b n 3 3"]
     target_extrinsics: Float[Tensor, "b n 4 4"]
+    target_intrinsics: Float[Tensor, "b n 3 3"]
     target_near: Float[Tensor, "b n"]
     target_far: Float[Tensor, "b n"]
 
@@ -58,6 +59,9 @@ def model_inputs(batch: dict, device: torch.device | str = "cpu") -> SceneInputs
         torch.Size([1, 2, 3, 3])
     """
     c, t = batch["context"], batch["target"]
-    return SceneInputs(*(x.to(device) for x in (
-        c["image"], c["intrinsics"], c["extrinsics"], c["near"], c["far"],
-        t["intrinsics"], t["extrinsics"], t["near"], t["far"])))
+    return SceneInputs(
+        images=c["image"].to(device), extrinsics=c["extrinsics"].to(device),
+        intrinsics=c["intrinsics"].to(device), near=c["near"].to(device),
+        far=c["far"].to(device), target_extrinsics=t["extrinsics"].to(device),
+        target_intrinsics=t["intrinsics"].to(device), target_near=t["near"].to(device),
+        target_far=t["far"].to(device))

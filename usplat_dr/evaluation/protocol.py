@@ -186,17 +186,10 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     return summary
 
 
-def _runs(ds, key: str) -> list[str]:
-    """The example names ``ds`` gives scene ``key`` in the test stage: the key, or with
-    ``test_times_per_scene`` = T > 1 (DTU), ``<key>_00`` .. ``<key>_(T-1)``."""
-    times = ds.cfg.test_times_per_scene
-    return [key] if times <= 1 else [f"{key}_{t:02d}" for t in range(times)]
-
-
 def scene_keys(ds, scored: list[str]) -> set[str]:
     """The scene keys of ``ds``'s data behind the scored example names ``scored``."""
     done = set(scored)
-    return {k for k in ds.index if any(r in done for r in _runs(ds, k))}
+    return {k for k in ds.index if any(r in done for r in ds.run_names(k))}
 
 
 def warn_unmatched_index(ds, split: str, index: str | Path) -> None:
@@ -204,7 +197,7 @@ def warn_unmatched_index(ds, split: str, index: str | Path) -> None:
     the split would score nothing (another dataset's index, or a preset whose example
     names differ from the index's, as DTU's ``<scan>_NN`` runs)."""
     entries = read_evaluation_index(index)
-    names = {r for k in ds.index for r in _runs(ds, k)}
+    names = {r for k in ds.index for r in ds.run_names(k)}
     if entries and ds.index and not names & set(entries):
         log.warning("%s: evaluation index %s matches no scene of the data (%d keys, e.g. %s; "
                     "the data's %d scenes are named e.g. %s): nothing to score", split, index,

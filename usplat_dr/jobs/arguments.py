@@ -3,6 +3,12 @@
 import argparse
 from pathlib import Path
 
+#: ``--checkpoint``'s help, the same for every command that takes one (one loader behind them:
+#: ``usplat_dr.training.checkpoints.load``).
+CHECKPOINT_HELP = ("a shipped checkpoint's name (tiny_full, tiny_baseline, ...: "
+                   "checkpoints/manifest.json), a file usplat train wrote "
+                   "(OUTPUT_DIR/checkpoints/last.ckpt) or an official MVSplat .ckpt")
+
 
 def at_least(minimum: int):
     """An argparse ``type``: an int >= ``minimum``.

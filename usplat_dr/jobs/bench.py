@@ -206,7 +206,7 @@ def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes
                 tgt = ex["targets"][size]
                 w0, c0 = time.perf_counter(), time.process_time()
                 model.render_targets(out, *(tgt[k].to(device) for k in (
-                    "intrinsics", "extrinsics", "near", "far")), (size, size), prune=prune)
+                    "extrinsics", "intrinsics", "near", "far")), (size, size), prune=prune)
                 if device.type == "cuda":
                     torch.cuda.synchronize(device)
                 a = acc[(c, name, size)]

@@ -10,17 +10,17 @@ import torch
 from usplat_dr import portable
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
-from usplat_dr.jobs.arguments import out_folder
+from usplat_dr.jobs.arguments import CHECKPOINT_HELP, out_folder
 from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
 from usplat_dr.render.prune import PruneSettings
-from usplat_dr.training.checkpoints import checkpoint_provenance, load_model
+from usplat_dr.training.checkpoints import checkpoint_provenance, load
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
 log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="usplat train's last.ckpt")
+    p.add_argument("--checkpoint", required=True, help=CHECKPOINT_HELP)
     p.add_argument("--data", required=True, help="dataset root (chunk format)")
     p.add_argument("--dataset", default="synth", choices=DATASETS)
     p.add_argument("--index", nargs="+", metavar="SPLIT=PATH",
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     lpips = None
     if args.lpips_vgg or args.lpips_lin:
         lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)
-    model, _step = load_model(args.checkpoint, args.device, args.trust_checkpoint)
+    model = load(args.checkpoint, args.device, args.trust_checkpoint)
     model.inference_precision = args.precision
     if args.precision == "bfloat16" and args.device == "cpu":
         warn_slow_bfloat16()

@@ -1,7 +1,12 @@
-"""``usplat render``: a novel-view video of a scene along a camera path
-(``usplat_dr.geometry.camera_paths``: context 0 -> 1 -> 0, then a wobble around each), colour
-| depth. Every frame is a target view: UniqueSplat (c) predicts Gaussians per frame, in batches
-of ``chunk`` frames.
+"""``usplat render``: novel views of a scene, colour | depth, as a video and PNG frames.
+
+The scene is an evaluation example of a dataset (``--data``) or the user's own images with a
+camera file (``--images A B --cameras FILE``: a COLMAP model folder or a nerfstudio
+transforms.json). The targets follow a path (``--path orbit``, ``usplat_dr.geometry.
+camera_paths``: context 0 -> 1 -> 0, then a wobble around each) or are the cameras of another
+camera file (``--path FILE``). Every frame is a target view: UniqueSplat (c) predicts
+Gaussians per frame (``UniqueSplat.predict``), in batches of ``chunk`` frames; with
+``--images`` the Gaussians of the first frame are also written as a 3DGS PLY.
 """
 
 import argparse
@@ -11,20 +16,22 @@ import numpy as np
 import torch
 
 from usplat_dr.data.types import model_inputs
+from usplat_dr.data.user_views import context_views, read_cameras, target_cameras
 from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.camera_paths import camera_path
-from usplat_dr.io.images import colorize_depth
+from usplat_dr.io.images import colorize_depth, save_png
 from usplat_dr.io.video import write_video
-from usplat_dr.jobs.arguments import at_least, out_folder, positive_int
-from usplat_dr.training.checkpoints import load_model, training_image_shape
+from usplat_dr.jobs.arguments import CHECKPOINT_HELP, at_least, out_folder, positive_int
+from usplat_dr.model.ply import write_ply
+from usplat_dr.training.checkpoints import load, training_image_shape
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
 
 
-def add_example_arguments(p: argparse.ArgumentParser) -> None:
+def add_example_arguments(p: argparse.ArgumentParser, data_required: bool = True) -> None:
     """The arguments naming a model and one evaluation example (``render``, ``export-ply``)."""
-    p.add_argument("--checkpoint", required=True, help="usplat train's last.ckpt")
-    p.add_argument("--data", required=True, help="dataset root (chunk format)")
+    p.add_argument("--checkpoint", required=True, help=CHECKPOINT_HELP)
+    p.add_argument("--data", required=data_required, help="dataset root (chunk format)")
     p.add_argument("--dataset", default="synth", choices=DATASETS)
     p.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
                    "standard split)")
@@ -57,45 +64,108 @@ def image_shape(args: argparse.Namespace) -> tuple[int, int]:
 def one_example(args: argparse.Namespace) -> tuple:
     """The model and the example that ``add_example_arguments``' arguments name."""
     index = args.index or synthetic_indices(args.data, ["standard"])["standard"]
-    model, _ = load_model(args.checkpoint, args.device, args.trust_checkpoint)
+    model = load(args.checkpoint, args.device, args.trust_checkpoint)
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
     return model, load_example(dataset, index, args.scene)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_example_arguments(p)
-    p.add_argument("--frames", type=at_least(2), default=60)
-    p.add_argument("--out", type=out_folder, default="outputs/render/video")
+    add_example_arguments(p, data_required=False)
+    own = p.add_argument_group("your own images (instead of --data)")
+    own.add_argument("--images", nargs="+", metavar="IMAGE",
+                     help="two (or more) context images, named as in --cameras")
+    own.add_argument("--cameras", help="their cameras: a COLMAP model folder (sparse/0) or a "
+                     "nerfstudio transforms.json")
+    own.add_argument("--near", type=float, help="near depth, scene units (default: from the "
+                     "COLMAP model's sparse points; required with a transforms.json)")
+    own.add_argument("--far", type=float, help="far depth (as --near)")
+    own.add_argument("--ignore-distortion", action="store_true",
+                     help="drop lens distortion coefficients (else they are an error)")
+    p.add_argument("--path", default="orbit", help="the target cameras: 'orbit' (context 0 -> "
+                   "1 -> 0, then a wobble around each) or a camera file like --cameras")
+    p.add_argument("--frames", type=at_least(2), default=60,
+                   help="frames of the orbit")
+    p.add_argument("--out", type=out_folder, default="outputs/render/video",
+                   help="output folder")
 
 
 def run(args: argparse.Namespace) -> int:
-    model, batch = one_example(args)
-    colors, depths = render_path(model, batch, args.frames, device=args.device)
-    valid = depths[np.isfinite(depths) & (depths > 0)]
-    lo, hi = ((float(np.percentile(valid, 2)), float(np.percentile(valid, 98))) if valid.size
-              else (1.0, 2.0))
-    frames = np.concatenate([colors, np.stack([colorize_depth(d, near=lo, far=hi)
-                                               for d in depths])], axis=2)
-    path = write_video(frames, Path(args.out))
-    print(f"wrote {path} ({len(frames)} frames: colour | depth)")
+    if args.images is None and args.data is None:
+        raise ValueError("give --data (a dataset in the chunk format) or --images A B "
+                         "--cameras FILE (your own images)")
+    if args.images is not None and args.data is not None:
+        raise ValueError("give --data or --images, not both")
+    out = Path(args.out)
+    if args.data is not None:
+        model, batch = one_example(args)
+        colors, depths = render_path(model, batch, args.frames, device=args.device,
+                                     path=args.path, image_shape=image_shape(args))
+    else:
+        model = load(args.checkpoint, args.device, args.trust_checkpoint)
+        pred = predict_own_views(model, args)
+        colors = pred.color.permute(0, 2, 3, 1).cpu().numpy()
+        depths = pred.depth.cpu().numpy()
+        ply = write_ply(out / "gaussians_frame0000.ply", pred.gaussians[0])
+        print(f"wrote {ply}: the Gaussians predicted for frame 0")
+    frames = colour_and_depth(colors, depths)
+    for i, frame in enumerate(frames):
+        save_png(out / "frames" / f"{i:04d}.png", frame)
+    path = write_video(frames, out / "video")
+    print(f"wrote {path} and {out / 'frames'} ({len(frames)} frames: colour | depth)")
     return 0
 
 
-@torch.no_grad()
+def colour_and_depth(colors: np.ndarray, depths: np.ndarray) -> np.ndarray:
+    """[F, H, 2W, 3] frames: colour beside depth, coloured between its 2nd and 98th
+    percentiles over all frames."""
+    valid = depths[np.isfinite(depths) & (depths > 0)]
+    lo, hi = ((float(np.percentile(valid, 2)), float(np.percentile(valid, 98))) if valid.size
+              else (1.0, 2.0))
+    return np.concatenate([colors, np.stack([colorize_depth(d, near=lo, far=hi)
+                                             for d in depths])], axis=2)
+
+
+def targets(path: str, context_extrinsics: torch.Tensor, context_intrinsics: torch.Tensor,
+            frames: int, image_shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``--path``: the target cameras (extrinsics [N, 4, 4], intrinsics [N, 3, 3]): the orbit
+    around the context cameras, seen with the first context camera's intrinsics, or the
+    cameras of a camera file."""
+    if path == "orbit":
+        e = camera_path(context_extrinsics.cpu(), frames).float()
+        return e, context_intrinsics[:1].cpu().expand(len(e), 3, 3)
+    return target_cameras(read_cameras(path), image_shape)
+
+
+def predict_own_views(model, args: argparse.Namespace):
+    """``--images`` and ``--cameras``: the model's ``Prediction`` for ``--path``."""
+    if args.cameras is None:
+        raise ValueError("--images needs --cameras FILE (a COLMAP model folder or a "
+                         "transforms.json)")
+    if (args.near is None) != (args.far is None):
+        raise ValueError("give both --near and --far, or neither")
+    shape = image_shape(args)
+    views = context_views(args.images, read_cameras(args.cameras, args.ignore_distortion),
+                          shape)
+    near, far = (args.near, args.far) if args.near is not None else (views.near, views.far)
+    if near is None:
+        raise ValueError(f"--cameras {args.cameras} has no sparse points to set near/far from: "
+                         f"give --near and --far (scene units)")
+    te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames, shape)
+    return model.predict(views.images, intrinsics=views.intrinsics,
+                         extrinsics=views.extrinsics, target_intrinsics=tk,
+                         target_extrinsics=te, near=near, far=far)
+
+
 def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,
-                device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray]:
-    """Colour [F, H, W, 3] and alpha-normalised depth [F, H, W] along ``camera_path``."""
-    device = torch.device(device)
-    inputs = model_inputs(batch, device)
-    images, k, e = inputs.images, inputs.intrinsics, inputs.extrinsics  # the context views
-    near, far = inputs.near, inputs.far
-    path = camera_path(e[0].cpu(), frames).to(device)
-    colors, depths = [], []
-    for s in range(0, frames, chunk):
-        c = path[s:s + chunk][None]
-        n = c.shape[1]
-        out = model(images, k, e, near, far, k[:, :1].expand(1, n, 3, 3), c,
-                    near[:, :1].expand(1, n), far[:, :1].expand(1, n))
-        colors.append(out.color[0].clamp(0, 1).permute(0, 2, 3, 1).cpu())
-        depths.append((out.depth[0] / out.alpha[0].clamp(min=1e-3)).cpu())
-    return torch.cat(colors).numpy(), torch.cat(depths).numpy()
+                device: torch.device | str = "cpu", path: str = "orbit",
+                image_shape: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Colour [F, H, W, 3] and alpha-normalised depth [F, H, W] of an example's scene along
+    ``--path`` (``targets``)."""
+    inputs = model_inputs(batch, torch.device(device))
+    shape = image_shape or tuple(inputs.images.shape[-2:])
+    te, tk = targets(path, inputs.extrinsics[0], inputs.intrinsics[0], frames, shape)
+    pred = model.predict(inputs.images[0], intrinsics=inputs.intrinsics[0],
+                         extrinsics=inputs.extrinsics[0], target_intrinsics=tk,
+                         target_extrinsics=te, near=inputs.near[0], far=inputs.far[0],
+                         chunk=chunk)
+    return (pred.color.permute(0, 2, 3, 1).cpu().numpy(), pred.depth.cpu().numpy())

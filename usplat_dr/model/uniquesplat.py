@@ -35,6 +35,7 @@ from usplat_dr.model.hypernet.hypernetwork import (
 )
 from usplat_dr.model.hypernet.injection import adapter_layout, run_head, vb_layout
 from usplat_dr.model.hypernet.view_branch import ViewSpecificEmbedding
+from usplat_dr.model.predict import DEFAULT_FAR, DEFAULT_NEAR, Prediction, predict_views
 from usplat_dr.model.types import Gaussians
 from usplat_dr.render.prune import PruneSettings
 
@@ -195,9 +196,10 @@ class UniqueSplat(nn.Module):
     """``UniqueSplat(config)`` or ``UniqueSplat.from_preset("paper" | "small" | "tiny",
     variant=...)``.
 
-    ``forward(images, intrinsics, extrinsics, near, far, target_intrinsics,
-    target_extrinsics, target_near, target_far, render=True) -> UniqueSplatOutput``. Cameras
-    follow the field's conventions (normalised intrinsics, camera-to-world OpenCV extrinsics).
+    ``forward(images, extrinsics, intrinsics, near, far, target_extrinsics,
+    target_intrinsics, target_near, target_far, render=True) -> UniqueSplatOutput``: the
+    order of ``SceneInputs``. Cameras follow the field's conventions (camera-to-world OpenCV
+    extrinsics, normalised intrinsics), extrinsics before intrinsics at every seam.
     """
 
     def __init__(self, config: UniqueSplatCfg | None = None):
@@ -307,7 +309,7 @@ class UniqueSplat(nn.Module):
 
     # ---- forward ------------------------------------------------------------------------
 
-    def check_targets(self, b: int, target_intrinsics, target_extrinsics, target_near,
+    def check_targets(self, b: int, target_extrinsics, target_intrinsics, target_near,
                       target_far) -> int:
         if target_intrinsics.ndim != 4 or target_intrinsics.shape[0] != b:
             raise ValueError(f"target_intrinsics must have shape [B={b}, N, 3, 3], got "
@@ -315,22 +317,22 @@ class UniqueSplat(nn.Module):
         n = target_intrinsics.shape[1]
         if n < 1:
             raise ValueError("target_intrinsics must hold >= 1 target view")
-        for name, t, shape in (("target_intrinsics", target_intrinsics, (b, n, 3, 3)),
-                               ("target_extrinsics", target_extrinsics, (b, n, 4, 4)),
+        for name, t, shape in (("target_extrinsics", target_extrinsics, (b, n, 4, 4)),
+                               ("target_intrinsics", target_intrinsics, (b, n, 3, 3)),
                                ("target_near", target_near, (b, n)),
                                ("target_far", target_far, (b, n))):
             if tuple(t.shape) != shape:
                 raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
-        check_finite(target_intrinsics=target_intrinsics, target_extrinsics=target_extrinsics,
+        check_finite(target_extrinsics=target_extrinsics, target_intrinsics=target_intrinsics,
                      target_near=target_near, target_far=target_far)
         if (target_near <= 0).any() or (target_far <= target_near).any():
             raise ValueError("target_near must be > 0 and target_far > target_near")
         return n
 
-    def forward(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
-                extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
-                far: Float[Tensor, "b v"], target_intrinsics: Float[Tensor, "b n 3 3"],
-                target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
+    def forward(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
+                intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
+                far: Float[Tensor, "b v"], target_extrinsics: Float[Tensor, "b n 4 4"],
+                target_intrinsics: Float[Tensor, "b n 3 3"], target_near: Float[Tensor, "b n"],
                 target_far: Float[Tensor, "b n"], render: bool = True, global_step: int = 0,
                 background_color: Tensor | None = None, settings=None, prune="auto", *,
                 encoding: DepthOutputs | None = None, delta_w: dict | None = None
@@ -351,22 +353,22 @@ class UniqueSplat(nn.Module):
         if prune == "auto":
             prune = None if self.training else self.inference_prune
         b, v, _, h, w = images.shape
-        n = self.check_targets(b, target_intrinsics, target_extrinsics, target_near, target_far)
+        n = self.check_targets(b, target_extrinsics, target_intrinsics, target_near, target_far)
         with self._autocast(images.device):
             if encoding is None:
-                depth = self.encode(images, intrinsics, extrinsics, near, far)
+                depth = self.encode(images, extrinsics, intrinsics, near, far)
             else:
                 depth = self._check_encoding(encoding, b, v, h, w)
             if delta_w is None:
                 weights, deltas, aux = self._target_weights(
-                    images, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
+                    images, extrinsics, intrinsics, target_extrinsics, target_intrinsics,
                     target_near, target_far)
             else:
                 weights = dict(zip(self.cfg.target_layers, self.agnostic_weights()))
                 deltas, aux = self._check_delta_w(delta_w, b * n), {}
             nb = n if deltas else 1  # per-target work only where Delta W exists
             depth_out = self._run_heads(depth, weights, deltas, near, far, v, b, nb)
-        gaussians = self._gaussians_per_target(depth_out, intrinsics, extrinsics, (h, w),
+        gaussians = self._gaussians_per_target(depth_out, extrinsics, intrinsics, (h, w),
                                                global_step, b, n, nb)
         # The context views' depth maps [B, V, H, W] (the first target's where they differ
         # per target; MVSplat's depth: the distance along the pixel's unit ray, not z): what
@@ -379,16 +381,16 @@ class UniqueSplat(nn.Module):
         out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
                                 aux=aux)
         if render:
-            self.render_targets(out, target_intrinsics, target_extrinsics, target_near,
+            self.render_targets(out, target_extrinsics, target_intrinsics, target_near,
                                 target_far, (h, w), background_color, settings, prune)
         return out
 
-    def encode(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
-               extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+    def encode(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
+               intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
                far: Float[Tensor, "b v"]) -> DepthOutputs:
         """The primary network up to its heads (backbone, transformer, cost volume, U-Nets):
         what ``forward`` computes once per scene, reusable as its ``encoding``."""
-        return self.primary.encode(images, intrinsics, extrinsics, near, far,
+        return self.primary.encode(images, extrinsics, intrinsics, near, far,
                                    run_heads=False)[2]
 
     @staticmethod
@@ -425,8 +427,12 @@ class UniqueSplat(nn.Module):
         enabled = self.inference_precision == "bfloat16" and not self.training
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=enabled)
 
-    def _target_weights(self, images, intrinsics, extrinsics, target_intrinsics,
-                        target_extrinsics, target_near, target_far
+    def _target_weights(self, images: Float[Tensor, "b v 3 h w"],
+                        extrinsics: Float[Tensor, "b v 4 4"],
+                        intrinsics: Float[Tensor, "b v 3 3"],
+                        target_extrinsics: Float[Tensor, "b n 4 4"],
+                        target_intrinsics: Float[Tensor, "b n 3 3"],
+                        target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"]
                         ) -> tuple[dict, dict, dict]:
         """The generated layers' weights: ``W`` (layer -> (weight, bias)) from the
         view-agnostic branch, ``Delta W`` (layer -> per-target low-rank factors) from the
@@ -434,8 +440,8 @@ class UniqueSplat(nn.Module):
         and weights) for ``out.aux``. Either dict is empty where its branch is absent."""
         aux, deltas = {}, {}
         if self.specific is not None:
-            e_s, proj_aux = self.view_embedding(images, intrinsics, extrinsics,
-                                                target_intrinsics, target_extrinsics,
+            e_s, proj_aux = self.view_embedding(images, extrinsics, intrinsics,
+                                                target_extrinsics, target_intrinsics,
                                                 target_near, target_far)
             aux.update(embedding=e_s, correlation=proj_aux["correlation"],
                        weights=proj_aux["weights"])
@@ -475,7 +481,8 @@ class UniqueSplat(nn.Module):
         return dataclasses.replace(depth, raw_gaussians=raw, depths=depths,
                                    densities=densities)
 
-    def _gaussians_per_target(self, depth_out, intrinsics, extrinsics,
+    def _gaussians_per_target(self, depth_out, extrinsics: Float[Tensor, "b v 4 4"],
+                              intrinsics: Float[Tensor, "b v 3 3"],
                               image_shape: tuple[int, int], global_step: int, b: int, n: int,
                               nb: int) -> Gaussians:
         """Gaussians [(B N), G, ...] from the heads' outputs: one set per target batch
@@ -492,9 +499,11 @@ class UniqueSplat(nn.Module):
         return gaussians
 
     @staticmethod
-    def render_targets(out: UniqueSplatOutput, target_intrinsics, target_extrinsics,
-                       target_near, target_far, image_shape: tuple[int, int],
-                       background_color=None, settings=None, prune=None) -> None:
+    def render_targets(out: UniqueSplatOutput, target_extrinsics: Float[Tensor, "b n 4 4"],
+                       target_intrinsics: Float[Tensor, "b n 3 3"],
+                       target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"],
+                       image_shape: tuple[int, int], background_color=None, settings=None,
+                       prune=None) -> None:
         """Render ``out``'s Gaussians for its targets at ``image_shape`` (any size: the
         intrinsics are normalised) into ``out.color/alpha/depth`` and ``out.aux["rendered"]``
         with the decoder (``usplat_dr.model.decoder``); ``forward(render=True)`` calls it at
@@ -504,6 +513,23 @@ class UniqueSplat(nn.Module):
                                                image_shape, background_color, prune)
         out.color, out.alpha, out.depth = r.color, r.alpha, r.depth
         out.aux["rendered"] = r.rendered
+
+    def predict(self, images, *, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
+                near=DEFAULT_NEAR, far=DEFAULT_FAR, chunk: int = 8) -> Prediction:
+        """Novel views from a user's own images: the Gaussians, colour and depth of each
+        target camera (a ``Prediction``), predicted in evaluation mode without gradients.
+
+        ``images``: V >= 2 context images, uint8 (0-255) or float in [0, 1], [V, H, W, 3] or
+        [V, 3, H, W] (numpy, torch or a list; H and W multiples of the preset's
+        ``image_multiple``); ``intrinsics`` [V, 3, 3] normalised (fx/W, fy/H, cx/W, cy/H);
+        ``extrinsics`` [V, 4, 4] camera-to-world, OpenCV axes; ``target_*`` the same for N
+        targets (one camera may come without its leading axis); ``near``/``far`` the depth
+        range in scene units (a number, or one per context view; the default is MVSplat's
+        RE10K range); ``chunk`` targets per forward pass. Cameras are keyword-only."""
+        return predict_views(self, images, intrinsics=intrinsics, extrinsics=extrinsics,
+                             target_intrinsics=target_intrinsics,
+                             target_extrinsics=target_extrinsics, near=near, far=far,
+                             chunk=chunk)
 
     # ---- reporting ----------------------------------------------------------------------
 

@@ -13,6 +13,8 @@ x Gaussians): small images only.
 import math
 
 import torch
+from jaxtyping import Float
+from torch import Tensor
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
@@ -59,7 +61,7 @@ def sh_basis_mvsplat(d: torch.Tensor, degree: int) -> torch.Tensor:
     return torch.stack(out, -1)
 
 
-def project_ref(c2w, K, near, W, H, means, covs):
+def project_ref(c2w: Float[Tensor, "4 4"], K: Float[Tensor, "3 3"], near, W, H, means, covs):
     """Per-Gaussian u, v, conic, z, radius, valid for one image (float64)."""
     w2c = torch.linalg.inv(c2w)
     R, t = w2c[:3, :3], w2c[:3, 3]
@@ -97,9 +99,9 @@ def project_ref(c2w, K, near, W, H, means, covs):
     return u, v, conic, z, radius, valid
 
 
-def render_ref(extrinsics, intrinsics, near, far, image_shape, background, means, covs, sh,
-               opacities, tile_cut: bool = True, basis: str = "3dgs",
-               clamp_gradient: str = "exact"):
+def render_ref(extrinsics: Float[Tensor, "batch 4 4"], intrinsics: Float[Tensor, "batch 3 3"],
+               near, far, image_shape, background, means, covs, sh, opacities,
+               tile_cut: bool = True, basis: str = "3dgs", clamp_gradient: str = "exact"):
     """Dense reference render of a batch. Inputs as ``usplat_dr.render.rasterize`` (any float
     dtype; use float64). Returns (color [B,3,H,W], alpha [B,H,W], depth [B,H,W]).
 

@@ -98,7 +98,11 @@ def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"
     such a checkpoint, or whose weights do not fit its ``model_config``, is a ``ValueError``
     naming it."""
     path = Path(checkpoint)
-    state = read_usplat_checkpoint(path, device, trust)
+    return _built(path, read_usplat_checkpoint(path, device, trust), device)
+
+
+def _built(path: Path, state: dict, device) -> tuple[UniqueSplat, int]:
+    """The model and step of a loaded usplat checkpoint ``state`` read from ``path``."""
     cfg, sd = _model_state(path, state)
     with _quiet_resnet():
         model = UniqueSplat(cfg)
@@ -110,15 +114,19 @@ def load_model(checkpoint: str | os.PathLike, device: torch.device | str = "cpu"
 def checkpoint_provenance(checkpoint: str | os.PathLike, trust: bool = False) -> dict:
     """A usplat checkpoint's provenance record (``{}`` when it has none): the data hashes,
     libraries and, since ``train_keys`` was added, the training scenes' keys."""
-    record = read_usplat_checkpoint(checkpoint, trust=trust).get("provenance")
+    record = read_usplat_checkpoint(resolve_checkpoint(checkpoint), trust=trust).get(
+        "provenance")
     return record if isinstance(record, dict) else {}
 
 
 def training_image_shape(checkpoint: str | os.PathLike, trust: bool = False
                          ) -> tuple[int, int] | None:
-    """The (H, W) a usplat checkpoint was trained at (its config's ``dataset.image_shape``),
-    or ``None`` when the checkpoint does not record one."""
-    state = read_usplat_checkpoint(checkpoint, trust=trust)
+    """The (H, W) a usplat checkpoint (a file or a shipped name) was trained at (its config's
+    ``dataset.image_shape``), or ``None`` when the checkpoint does not record one (MVSplat's
+    do not)."""
+    state = read_usplat_checkpoint(resolve_checkpoint(checkpoint), trust=trust)
+    if is_mvsplat_checkpoint(state):
+        return None
     config = state.get("config") or {}
     dataset = (config.get("dataset") or {}) if isinstance(config, dict) else None
     if not isinstance(dataset, dict):
@@ -219,3 +227,53 @@ def shipped_checkpoints(root: Path = CHECKPOINTS) -> dict[str, Path]:
                                 f"(train them with train/ship_checkpoint.py; see README)")
     entries = json.loads(manifest.read_text())
     return {e["name"]: root / e["file"] for e in entries}
+
+
+def resolve_checkpoint(checkpoint: str | os.PathLike, root: Path = CHECKPOINTS) -> Path:
+    """The file ``checkpoint`` names: a path, or a shipped checkpoint's name (``tiny_full``,
+    with or without ``.pt``). Neither is a ``FileNotFoundError`` listing the shipped names."""
+    path = Path(checkpoint)
+    if path.is_file():
+        return path
+    shipped = shipped_checkpoints(root) if (root / "manifest.json").is_file() else {}
+    names = ", ".join(sorted(shipped)) or "none installed"
+    if len(path.parts) == 1:  # a bare name
+        if path.name.removesuffix(".pt") in shipped:
+            return shipped[path.name.removesuffix(".pt")]
+        raise FileNotFoundError(f"checkpoint {str(checkpoint)!r} is neither a file nor a "
+                                f"shipped checkpoint's name (shipped: {names})")
+    raise FileNotFoundError(f"checkpoint {str(checkpoint)!r} does not exist (usplat train "
+                            f"writes OUTPUT_DIR/checkpoints/last.ckpt; MVSplat's files are "
+                            f"re10k.ckpt / acid.ckpt from its release; shipped ones load by "
+                            f"name: {names})")
+
+
+def is_mvsplat_checkpoint(state: dict) -> bool:
+    """Whether a loaded checkpoint is MVSplat's (a Lightning file whose ``state_dict`` keys
+    start with ``encoder.``, or such a bare state dict) rather than one of ours."""
+    sd = state.get("state_dict", state)
+    return ("model_config" not in state and isinstance(sd, dict) and bool(sd)
+            and all(isinstance(k, str) and k.startswith("encoder.") for k in sd))
+
+
+def load(checkpoint: str | os.PathLike, device: torch.device | str = "cpu",
+         trust: bool = False) -> UniqueSplat:
+    """A ``UniqueSplat`` in evaluation mode from any checkpoint users have: a shipped one by
+    name (``usplat_dr.load("tiny_full")``; names in ``checkpoints/manifest.json``), a file
+    ``usplat train`` wrote, or an official MVSplat checkpoint (``re10k.ckpt``: the paper preset
+    (a), which renders what MVSplat renders). ``trust``: full unpickling, for files
+    ``torch.load(weights_only=True)`` refuses (MVSplat's Lightning files may need it; it can
+    run code: only for files you trust).
+
+    Examples:
+        >>> model = load("tiny_full")
+        >>> model.cfg.variant
+        'full'
+    """
+    path = resolve_checkpoint(checkpoint)
+    state = read_usplat_checkpoint(path, device, trust)
+    if is_mvsplat_checkpoint(state):
+        model = UniqueSplat.from_preset("paper", variant="baseline")
+        return model.load_mvsplat(state).to(device).eval()
+    return _built(path, state, device)[0]
+

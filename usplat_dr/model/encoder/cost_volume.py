@@ -47,7 +47,7 @@ def pixel_intrinsics(intrinsics: Float[Tensor, "b v 3 3"], h: int, w: int
     return k.transpose(0, 1).reshape(-1, 3, 3)
 
 
-def warp_grid(k: Float[Tensor, "n 3 3"], pose: Float[Tensor, "n 4 4"],
+def warp_grid(pose: Float[Tensor, "n 4 4"], k: Float[Tensor, "n 3 3"],
               depth: Float[Tensor, "n d"], h: int, w: int) -> Float[Tensor, "n d hw 2"]:
     """grid_sample coordinates of each reference pixel at each candidate depth in the other
     view (align_corners=True normalisation)."""
@@ -124,8 +124,8 @@ def _correlation_gram(ref: Tensor, other: Tensor, grid: Tensor, max_bytes: int) 
 
 
 def plane_sweep_correlation(features: Float[Tensor, "b v c h w"],
-                            intrinsics: Float[Tensor, "b v 3 3"],
                             extrinsics: Float[Tensor, "b v 4 4"],
+                            intrinsics: Float[Tensor, "b v 3 3"],
                             disparities: Float[Tensor, "vb d"],
                             method: str = "gram", chunk: int = 16,
                             max_bytes: int = 64 * 2**20) -> Float[Tensor, "vb d h w"]:
@@ -146,7 +146,7 @@ def plane_sweep_correlation(features: Float[Tensor, "b v c h w"],
         # Geometry in float32 whatever autocast says: in bfloat16 the pixel coordinates round
         # by up to a pixel and the gathered corner indices run past the image.
         with torch.no_grad(), torch.autocast(k.device.type, enabled=False):
-            grid = warp_grid(k.float(), pose.float(), depth.detach().float(), h, w)
+            grid = warp_grid(pose.float(), k.float(), depth.detach().float(), h, w)
         if method == "gram":
             corr = _correlation_gram(ref, other, grid, max_bytes)
         else:

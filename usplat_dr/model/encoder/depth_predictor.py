@@ -135,8 +135,8 @@ class DepthPredictorMultiView(nn.Module):
 
     def forward(self, trans_features: Float[Tensor, "b v c h w"],
                 cnn_features: Float[Tensor, "b v c h w"],
-                images: Float[Tensor, "b v 3 H W"], intrinsics: Float[Tensor, "b v 3 3"],
-                extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+                images: Float[Tensor, "b v 3 H W"], extrinsics: Float[Tensor, "b v 4 4"],
+                intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
                 far: Float[Tensor, "b v"], run_heads: bool = True) -> DepthOutputs:
         cfg = self.cfg
         b, v, c, h, w = trans_features.shape
@@ -148,7 +148,7 @@ class DepthPredictorMultiView(nn.Module):
 
         # ---- Cost volume and its refinement ----
         if cfg.use_cost_volume:
-            cost = plane_sweep_correlation(trans_features, intrinsics, extrinsics, disps,
+            cost = plane_sweep_correlation(trans_features, extrinsics, intrinsics, disps,
                                            cfg.cost_volume_method, cfg.cost_volume_chunk)
         else:  # ablation: no matching information, only the features
             cost = feat.new_zeros(v * b, cfg.num_depth_candidates, h, w)

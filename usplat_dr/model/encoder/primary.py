@@ -173,7 +173,7 @@ class PrimaryNetworkCfg:
 
 
 class PrimaryNetwork(nn.Module):
-    """MVSplat's encoder. ``forward(images, intrinsics, extrinsics, near, far) -> Gaussians``.
+    """MVSplat's encoder. ``forward(images, extrinsics, intrinsics, near, far) -> Gaussians``.
 
     State-dict keys are MVSplat's with the ``encoder.`` prefix stripped (471 keys for the
     default configuration). Build from a checkpoint with ``from_mvsplat_checkpoint``.
@@ -186,7 +186,7 @@ class PrimaryNetwork(nn.Module):
         >>> e = torch.eye(4).repeat(1, 2, 1, 1); e[0, 1, 0, 3] = 0.1
         >>> k = torch.tensor([[0.9, 0, 0.5], [0, 0.9, 0.5], [0, 0, 1]]).repeat(1, 2, 1, 1)
         >>> with torch.no_grad():
-        ...     g = net(torch.rand(1, 2, 3, 32, 32), k, e, torch.ones(1, 2), 100 * torch.ones(1, 2))
+        ...     g = net(torch.rand(1, 2, 3, 32, 32), e, k, torch.ones(1, 2), 100 * torch.ones(1, 2))
         >>> g.means.shape, g.harmonics.shape
         (torch.Size([1, 2048, 3]), torch.Size([1, 2048, 3, 25]))
     """
@@ -215,7 +215,7 @@ class PrimaryNetwork(nn.Module):
         x = x0 + min(global_step / warm_up, 1) * (x1 - x0)
         return 2.0**x
 
-    def check_inputs(self, images, intrinsics, extrinsics, near, far) -> None:
+    def check_inputs(self, images, extrinsics, intrinsics, near, far) -> None:
         if images.ndim != 5 or images.shape[2] != 3:
             raise ValueError(f"images must have shape [B, V, 3, H, W], got {tuple(images.shape)}")
         b, v, _, h, w = images.shape
@@ -225,29 +225,30 @@ class PrimaryNetwork(nn.Module):
         if h % m or w % m:
             raise ValueError(f"images height and width must be multiples of {m}, got {h}x{w}; "
                              f"centre-crop them (usplat_dr.data.shims.rescale_and_crop)")
-        for name, t, shape in (("intrinsics", intrinsics, (b, v, 3, 3)),
-                               ("extrinsics", extrinsics, (b, v, 4, 4)),
+        for name, t, shape in (("extrinsics", extrinsics, (b, v, 4, 4)),
+                               ("intrinsics", intrinsics, (b, v, 3, 3)),
                                ("near", near, (b, v)), ("far", far, (b, v))):
             if tuple(t.shape) != shape:
                 raise ValueError(f"{name} must have shape {list(shape)}, got {list(t.shape)}")
-        check_finite(images=images, intrinsics=intrinsics, extrinsics=extrinsics, near=near,
+        check_finite(images=images, extrinsics=extrinsics, intrinsics=intrinsics, near=near,
                      far=far)
         if (near <= 0).any() or (far <= near).any():
             raise ValueError("near must be > 0 and far > near for every view")
 
-    def encode(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
-               extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+    def encode(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
+               intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
                far: Float[Tensor, "b v"], run_heads: bool = True
                ) -> tuple[Tensor, Tensor, DepthOutputs]:
         """Backbone and depth predictor: (transformer features, CNN features, depth outputs);
         ``run_heads=False`` stops before the depth and Gaussian heads."""
-        self.check_inputs(images, intrinsics, extrinsics, near, far)
+        self.check_inputs(images, extrinsics, intrinsics, near, far)
         trans, cnn = self.backbone(images, self.cfg.multiview_trans_attn_split)
-        out = self.depth_predictor(trans, cnn, images, intrinsics, extrinsics, near, far,
+        out = self.depth_predictor(trans, cnn, images, extrinsics, intrinsics, near, far,
                                    run_heads)
         return trans, cnn, out
 
-    def gaussians_from(self, depth: DepthOutputs, extrinsics: Tensor, intrinsics: Tensor,
+    def gaussians_from(self, depth: DepthOutputs, extrinsics: Float[Tensor, "b v 4 4"],
+                       intrinsics: Float[Tensor, "b v 3 3"],
                        image_shape: tuple[int, int], global_step: int = 0) -> Gaussians:
         """The Gaussian adapter on the depth predictor's outputs, in float32 whatever
         autocast says (the Gaussians' geometry, and the rasteriser takes float32 only)."""
@@ -260,12 +261,12 @@ class PrimaryNetwork(nn.Module):
                                                  depth.depths.float(), opacities, image_shape)
         return gaussians
 
-    def forward(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
-                extrinsics: Float[Tensor, "b v 4 4"], near: Float[Tensor, "b v"],
+    def forward(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
+                intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
                 far: Float[Tensor, "b v"], global_step: int = 0) -> Gaussians:
-        """Gaussians of the context views: images in [0, 1], intrinsics normalised, extrinsics
-        camera-to-world (OpenCV), near/far per view."""
-        _, _, depth = self.encode(images, intrinsics, extrinsics, near, far)
+        """Gaussians of the context views: images in [0, 1], extrinsics camera-to-world
+        (OpenCV), intrinsics normalised, near/far per view."""
+        _, _, depth = self.encode(images, extrinsics, intrinsics, near, far)
         depth.drop_intermediates()
         return self.gaussians_from(depth, extrinsics, intrinsics, tuple(images.shape[-2:]),
                                    global_step)

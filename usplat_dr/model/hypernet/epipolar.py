@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from usplat_dr.geometry.cameras import pixel_centres
 
 
-def target_rays(intrinsics: Float[Tensor, "b n 3 3"], extrinsics: Float[Tensor, "b n 4 4"],
+def target_rays(extrinsics: Float[Tensor, "b n 4 4"], intrinsics: Float[Tensor, "b n 3 3"],
                 grid: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """Origins [B, N, 1, 3] and directions [B, N, P, 3] (P = gh * gw pixel centres of a
     ``grid`` over the image, raster order) scaled so that o + z d has camera depth z."""
@@ -39,8 +39,8 @@ def sample_depths(near: Float[Tensor, "b n"], far: Float[Tensor, "b n"], num: in
     return 1 / disp
 
 
-def project(points: Float[Tensor, "b n p s 3"], intrinsics: Float[Tensor, "b v 3 3"],
-            extrinsics: Float[Tensor, "b v 4 4"]) -> tuple[Tensor, Tensor]:
+def project(points: Float[Tensor, "b n p s 3"], extrinsics: Float[Tensor, "b v 4 4"],
+            intrinsics: Float[Tensor, "b v 3 3"]) -> tuple[Tensor, Tensor]:
     """Normalised image coordinates [B, N, V, P, S, 2] of world points in each context view,
     and validity [B, N, V, P, S] (in front of the camera and inside the image)."""
     w2c = extrinsics.inverse()
@@ -79,9 +79,9 @@ class EpipolarProjection(nn.Module):
         self.log_temperature = nn.Parameter(torch.tensor(float(temperature)).log())
 
     def forward(self, features: Float[Tensor, "b v c h w"],
-                intrinsics: Float[Tensor, "b v 3 3"], extrinsics: Float[Tensor, "b v 4 4"],
-                target_intrinsics: Float[Tensor, "b n 3 3"],
-                target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
+                extrinsics: Float[Tensor, "b v 4 4"], intrinsics: Float[Tensor, "b v 3 3"],
+                target_extrinsics: Float[Tensor, "b n 4 4"],
+                target_intrinsics: Float[Tensor, "b n 3 3"], target_near: Float[Tensor, "b n"],
                 target_far: Float[Tensor, "b n"], grid: tuple[int, int]
                 ) -> tuple[Tensor, dict]:
         """Target features [B, N, C, gh, gw] on a ``grid`` = (gh, gw) of target pixels, and
@@ -89,10 +89,10 @@ class EpipolarProjection(nn.Module):
         b, v, c, h, w = features.shape
         n = target_intrinsics.shape[1]
         gh, gw = grid
-        origins, dirs = target_rays(target_intrinsics, target_extrinsics, (gh, gw))
+        origins, dirs = target_rays(target_extrinsics, target_intrinsics, (gh, gw))
         depths = sample_depths(target_near, target_far, self.num_samples)  # [B, N, S]
         points = origins[..., None, :] + dirs[..., None, :] * depths[:, :, None, :, None]
-        xy, valid = project(points, intrinsics, extrinsics)  # [B, N, V, P, S, 2]
+        xy, valid = project(points, extrinsics, intrinsics)  # [B, N, V, P, S, 2]
         p, s = points.shape[2], points.shape[3]
         grid = (2 * xy - 1).permute(0, 2, 1, 3, 4, 5).reshape(b * v, n * p, s, 2)
         sampled = F.grid_sample(features.reshape(b * v, c, h, w), grid, mode="bilinear",

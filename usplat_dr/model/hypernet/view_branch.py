@@ -57,14 +57,14 @@ class ContextFeatures(nn.Module):
         return fused.unflatten(0, (b, v))
 
 
-def camera_channels(intrinsics: Float[Tensor, "b v 3 3"], extrinsics: Float[Tensor, "b v 4 4"],
-                    target_intrinsics: Float[Tensor, "b n 3 3"],
-                    target_extrinsics: Float[Tensor, "b n 4 4"], grid: tuple[int, int]
+def camera_channels(extrinsics: Float[Tensor, "b v 4 4"], intrinsics: Float[Tensor, "b v 3 3"],
+                    target_extrinsics: Float[Tensor, "b n 4 4"],
+                    target_intrinsics: Float[Tensor, "b n 3 3"], grid: tuple[int, int]
                     ) -> Float[Tensor, "b n 6 gh gw"]:
     """Target rays in the first context camera's frame: unit direction, and tanh of the origin
     divided by the mean distance between the context cameras (over all pairs: the distance of
     the two for V = 2; scale-free, and bounded when the context cameras coincide)."""
-    origins, dirs = target_rays(target_intrinsics, target_extrinsics, grid)  # world
+    origins, dirs = target_rays(target_extrinsics, target_intrinsics, grid)  # world
     w2c = extrinsics[:, :1].inverse()  # [B, 1, 4, 4]
     rot, trans = w2c[..., :3, :3], w2c[..., :3, 3]
     d = F.normalize(torch.einsum("bnij,bnpj->bnpi", rot, dirs), dim=-1)
@@ -109,16 +109,16 @@ class ViewSpecificEmbedding(nn.Module):
         self.proj = EpipolarProjection(num_samples, temperature)
         self.phi = Phi(feature_dim + 6, phi_channels, embed_dim)
 
-    def forward(self, images: Float[Tensor, "b v 3 h w"], intrinsics: Float[Tensor, "b v 3 3"],
-                extrinsics: Float[Tensor, "b v 4 4"], target_intrinsics: Float[Tensor, "b n 3 3"],
-                target_extrinsics: Float[Tensor, "b n 4 4"], target_near: Float[Tensor, "b n"],
+    def forward(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
+                intrinsics: Float[Tensor, "b v 3 3"], target_extrinsics: Float[Tensor, "b n 4 4"],
+                target_intrinsics: Float[Tensor, "b n 3 3"], target_near: Float[Tensor, "b n"],
                 target_far: Float[Tensor, "b n"]) -> tuple[Tensor, dict]:
         h, w = images.shape[-2:]
         grid = (max(h // self.proj_stride, 1), max(w // self.proj_stride, 1))
         f_c = self.features(images)
-        f_t, aux = self.proj(f_c, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
+        f_t, aux = self.proj(f_c, extrinsics, intrinsics, target_extrinsics, target_intrinsics,
                              target_near, target_far, grid)
-        cams = camera_channels(intrinsics, extrinsics, target_intrinsics, target_extrinsics,
+        cams = camera_channels(extrinsics, intrinsics, target_extrinsics, target_intrinsics,
                                grid)
         x = torch.cat((f_t, cams), 2).flatten(0, 1)  # [B N, C + 6, gh, gw]
         return self.phi(x).unflatten(0, f_t.shape[:2]), aux
