@@ -181,14 +181,7 @@ Files in train/ and plugins/ (every import, function-local ones included):
 
 #: Known exceptions: {file: {what it imports: the move that removes it}}. A listed exception
 #: that no longer occurs fails too, so the list shrinks with the moves.
-PENDING = {
-    "train/studies/stability.py": {
-        "usplat_dr.jobs.budgets": "the demo's run recipe (BUDGETS, training_config) is the "
-                                  "demo's own; the study would need it in the library",
-        "usplat_dr.jobs.report": "curves, stability -> training/run_log.py (research_wing.md, "
-                                 "'Library moves'; with the trainer's RunLog)",
-    },
-}
+PENDING: dict[str, dict[str, str]] = {}
 
 
 def script_files() -> list[Path]:

@@ -133,8 +133,9 @@ def test_registered_verdict_lines():
 def demo_results(out: Path, stable: dict):
     """A ``DemoResults`` of made-up numbers, with the files ``write_report`` reads."""
     from usplat_dr.evaluation.verdict import Comparison
-    from usplat_dr.jobs.budgets import BASE, BUDGETS
     from usplat_dr.jobs.report import DemoResults
+    from usplat_dr.training.budgets import BUDGETS
+    from usplat_dr.training.checkpoints import BASE
 
     (out / "bench_demo").mkdir(parents=True)
     (out / "bench_demo" / "bench.md").write_text("| the demo's bench |\n")
@@ -166,8 +167,8 @@ def demo_results(out: Path, stable: dict):
 def test_write_report_writes_a_section_each(tmp_path):
     # the report of made-up results, its training sections from a metrics.csv written by the
     # run log (the format's one writer and reader), without the slow demo
-    from usplat_dr.jobs.report import curves, stability, write_report
-    from usplat_dr.training.run_log import RunLog
+    from usplat_dr.jobs.report import write_report
+    from usplat_dr.training.run_log import RunLog, curves, stability
 
     run = tmp_path / "train_full"
     fields = ["step", "loss", "psnr", "grad_norm", "grad_specific", "skipped"]

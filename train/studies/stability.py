@@ -15,9 +15,9 @@ import logging
 from pathlib import Path
 
 from usplat_dr.io import write_json
-from usplat_dr.jobs.budgets import BUDGETS, training_config
-from usplat_dr.jobs.report import curves, stability
 from usplat_dr.training import train
+from usplat_dr.training.budgets import BUDGETS, training_config
+from usplat_dr.training.run_log import curves, stability
 
 
 def main() -> None:

@@ -171,64 +171,75 @@ def _examples(data: Path, model_size: int, render_sizes) -> list[dict]:
             for i in range(len(per_size[model_size]))]
 
 
-@torch.no_grad()
-def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes=None,
-            device="cpu", progress: bool = True) -> list[dict]:
-    """One row per (configuration, pruning, render size); see the module docstring."""
-    device = torch.device(device)
-    render_sizes = sorted(set(render_sizes or (model_size // 2, model_size)))
-    prunes = PRUNES if prunes is None else prunes
+#: What ``_time_scene`` appends per (configuration, pruning, render size) and scene.
+MEASURES = ("wall", "cpu", "psnr", "ssim", "abs_rel", "gaussians", "kept", "mem")
+
+
+def _settings(prunes: dict, model_size: int, render_sizes: list[int]) -> list[tuple]:
+    """``(name, pruning, render size)`` to measure: each of ``prunes`` at the model's size,
+    then the default pruning at each other render size."""
     default_label = next((k for k, v in PRUNES.items() if v == DEFAULT_INFERENCE_PRUNE), "cull")
     settings = [(name, p, model_size) for name, p in prunes.items()]
-    settings += [(default_label, DEFAULT_INFERENCE_PRUNE, s) for s in render_sizes
-                 if s != model_size]
-    examples = _examples(data, model_size, render_sizes)
-    acc = {(c, name, s): {"wall": [], "cpu": [], "psnr": [], "ssim": [], "abs_rel": [],
-                          "gaussians": [], "kept": [], "mem": []}
-           for c in models for name, _, s in settings}
-    bar = None
-    if progress:
-        bar = tqdm(total=len(examples) * len(models), desc="bench", unit="scene",
-                   dynamic_ncols=True)
-    for i, ex in enumerate(examples):
-        inputs = model_inputs(ex["batch"], device)
-        n = inputs.target_intrinsics.shape[1]
-        for c, model in models.items():
-            model.eval()
-            with PeakMemory(device) as mem:
-                w0, c0 = time.perf_counter(), time.process_time()
-                out = model(*inputs, render=False)
-                if device.type == "cuda":
-                    torch.cuda.synchronize(device)
-                model_wall, model_cpu = time.perf_counter() - w0, time.process_time() - c0
-            total = len(out.gaussians)
-            for name, prune, size in settings:
-                tgt = ex["targets"][size]
-                w0, c0 = time.perf_counter(), time.process_time()
-                model.render_targets(out, *(tgt[k].to(device) for k in (
-                    "extrinsics", "intrinsics", "near", "far")), (size, size), prune=prune)
-                if device.type == "cuda":
-                    torch.cuda.synchronize(device)
-                a = acc[(c, name, size)]
-                a["wall"].append((model_wall + time.perf_counter() - w0) / n)
-                a["cpu"].append((model_cpu + time.process_time() - c0) / n)
-                a["mem"].append(mem.gib)
-                gt = tgt["image"][0].to(device)
-                a["psnr"].append(psnr(out.color[0], gt).mean().item())
-                a["ssim"].append(ssim(out.color[0], gt).mean().item())
-                dm = [depth_metrics(out.depth[0, j].cpu(), out.alpha[0, j].cpu(),
-                                    tgt["depth"][0, j])["abs_rel"] for j in range(n)]
-                a["abs_rel"].append(nan_mean(dm))
-                rendered = out.aux["rendered"].float().mean().item()
-                a["gaussians"].append(rendered)
-                a["kept"].append(rendered / total)
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+    return settings + [(default_label, DEFAULT_INFERENCE_PRUNE, s) for s in render_sizes
+                       if s != model_size]
+
+
+def _wait(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA runs asynchronously), so a clock read after it
+    counts the work."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _time_scene(config: BenchConfig, model, inputs, targets: dict, settings: list[tuple],
+                acc: dict, device: torch.device) -> None:
+    """One scene and configuration: the model's forward timed once (wall, CPU, peak memory),
+    then each ``(name, pruning, size)`` of ``settings`` rendered on ``targets[size]`` and timed;
+    per setting, the time per view (the forward's share included) and the render's accuracy
+    (``_append_accuracy``) appended to ``acc[(config, name, size)]``."""
+    n = inputs.target_intrinsics.shape[1]
+    model.eval()
+    with PeakMemory(device) as mem:
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = model(*inputs, render=False)
+        _wait(device)
+        model_wall, model_cpu = time.perf_counter() - w0, time.process_time() - c0
+    total = len(out.gaussians)
+    for name, prune, size in settings:
+        tgt = targets[size]
+        w0, c0 = time.perf_counter(), time.process_time()
+        model.render_targets(out, *(tgt[k].to(device) for k in (
+            "extrinsics", "intrinsics", "near", "far")), (size, size), prune=prune)
+        _wait(device)
+        a = acc[(config, name, size)]
+        a["wall"].append((model_wall + time.perf_counter() - w0) / n)
+        a["cpu"].append((model_cpu + time.process_time() - c0) / n)
+        a["mem"].append(mem.gib)
+        _append_accuracy(a, out, tgt, n, total, device)
+
+
+def _append_accuracy(a: dict, out, tgt: dict, n: int, total: int, device: torch.device) -> None:
+    """The ``n`` rendered targets of ``out`` against ``tgt``: PSNR, SSIM, depth AbsRel, the
+    Gaussians rendered per view and their fraction of the model's ``total``, appended to ``a``."""
+    gt = tgt["image"][0].to(device)
+    a["psnr"].append(psnr(out.color[0], gt).mean().item())
+    a["ssim"].append(ssim(out.color[0], gt).mean().item())
+    dm = [depth_metrics(out.depth[0, j].cpu(), out.alpha[0, j].cpu(),
+                        tgt["depth"][0, j])["abs_rel"] for j in range(n)]
+    a["abs_rel"].append(nan_mean(dm))
+    rendered = out.aux["rendered"].float().mean().item()
+    a["gaussians"].append(rendered)
+    a["kept"].append(rendered / total)
+
+
+def _aggregate(acc: dict, models: dict, scenes: int) -> list[dict]:
+    """A row per ``acc`` key ``(config, name, size)``, in its order: times as medians over
+    the scenes (the first, which warms kernels up, left out when there are more), the peak
+    memory's maximum, the other measures' means, and the PSNR change against rendering
+    everything ("all") for the same model and size (``None`` without an "all" row)."""
+    steady = slice(1, None) if scenes > 1 else slice(None)
     rows = []
     for (c, name, size), a in acc.items():
-        steady = slice(1, None) if len(examples) > 1 else slice(None)
         mems = [m for m in a["mem"] if m is not None]
         rows.append({
             "config": c.label, "preset": c.preset, "variant": c.variant,
@@ -240,12 +251,32 @@ def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes
             "gaussians_per_view": statistics.mean(a["gaussians"]),
             "kept_fraction": statistics.mean(a["kept"]),
             "psnr": statistics.mean(a["psnr"]), "ssim": statistics.mean(a["ssim"]),
-            "abs_rel": nan_mean(a["abs_rel"]), "scenes": len(examples)})
-    for r in rows:  # PSNR change against rendering everything, same model and size
+            "abs_rel": nan_mean(a["abs_rel"]), "scenes": scenes})
+    for r in rows:
         base = next((q for q in rows if q["config"] == r["config"] and q["prune"] == "all"
                      and q["render_size"] == r["render_size"]), None)
         r["psnr_change_db"] = None if base is None else r["psnr"] - base["psnr"]
     return rows
+
+
+@torch.no_grad()
+def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes=None,
+            device="cpu", progress: bool = True) -> list[dict]:
+    """One row per (configuration, pruning, render size); see the module docstring. Scene by
+    scene, each configuration in turn (``_time_scene``), then the rows (``_aggregate``)."""
+    device = torch.device(device)
+    render_sizes = sorted(set(render_sizes or (model_size // 2, model_size)))
+    settings = _settings(PRUNES if prunes is None else prunes, model_size, render_sizes)
+    examples = _examples(data, model_size, render_sizes)
+    acc = {(c, name, s): {k: [] for k in MEASURES} for c in models for name, _, s in settings}
+    with tqdm(total=len(examples) * len(models), desc="bench", unit="scene",
+              dynamic_ncols=True, disable=not progress) as bar:
+        for ex in examples:
+            inputs = model_inputs(ex["batch"], device)
+            for c, model in models.items():
+                _time_scene(c, model, inputs, ex["targets"], settings, acc, device)
+                bar.update(1)
+    return _aggregate(acc, models, len(examples))
 
 
 def choose(rows: list[dict], model_size: int) -> dict:

@@ -30,7 +30,7 @@ from usplat_dr.evaluation.verdict import compare
 from usplat_dr.jobs.arguments import non_negative_int
 from usplat_dr.jobs.bench import BenchConfig, measure, write_results
 from usplat_dr.jobs.budgets import BUDGETS, PRESET, Budget, ensure_data, training_config
-from usplat_dr.jobs.report import DemoResults, curves, stability, write_report
+from usplat_dr.jobs.report import DemoResults, write_report
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import (
     BASE,
@@ -40,6 +40,7 @@ from usplat_dr.training.checkpoints import (
     registered_verdict,
     shipped_checkpoints,
 )
+from usplat_dr.training.run_log import curves, stability
 
 log = logging.getLogger(__name__)
 

@@ -1,80 +1,20 @@
 """Reports from result files: the demo's ``report.md`` (training curves, gradient stability,
 the tables), and ``usplat bench``'s chart and table. Pure functions from results to Markdown
-and PNG; the measuring is in ``demo`` and ``bench``, and ``metrics.csv`` is read by
-``usplat_dr.training.run_log``, which writes it."""
+and PNG; the measuring is in ``demo`` and ``bench``, and ``metrics.csv`` is read and
+summarised (``curves``, ``stability``) by ``usplat_dr.training.run_log``, which writes it."""
 
 from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
 import matplotlib.pyplot as plt
-import numpy as np
 from matplotlib.lines import Line2D
 
 from usplat_dr.evaluation.verdict import Comparison
 from usplat_dr.evaluation.verdict import table as verdict_table
 from usplat_dr.io import atomic_open
 from usplat_dr.jobs.budgets import BASE, FINETUNE_LR, PRESET, SHIPPED, VARIANTS, Budget
-from usplat_dr.training.run_log import curve, read_metrics
-
-GRAD_LABELS = {"grad_primary": "primary network", "grad_agnostic": "view-agnostic (e_a, H_a)",
-               "grad_specific": "view-specific H_s",
-               "grad_view_features": "view-specific features (ResNet, Proj, phi)"}
-
-
-def curves(runs: dict, path: Path) -> Path:
-    """Training loss, PSNR and the gradient norms of the network's parts (before clipping)."""
-    matplotlib.use("Agg")  # files only, no display
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.4))
-    for variant, run in runs.items():
-        rows = read_metrics(run)
-        for ax, key in ((axes[0], "loss"), (axes[1], "psnr")):
-            steps, values = curve(rows, key)
-            line, = ax.plot(steps, values, alpha=0.25, linewidth=0.8)
-            ax.plot(steps, smooth(values), color=line.get_color(),
-                    label=VARIANTS.get(variant, variant))
-        for key, label in GRAD_LABELS.items():
-            steps, values = curve(rows, key)
-            if values:
-                axes[2].plot(steps, smooth(values), linewidth=1,
-                             label=f"{VARIANTS.get(variant, variant)[:3]} {label}")
-    axes[0].set(xlabel="step", ylabel="training loss (MSE)", yscale="log")
-    axes[1].set(xlabel="step", ylabel="training PSNR (dB)")
-    axes[2].set(xlabel="step", ylabel="gradient norm before clipping", yscale="log")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
-    plt.close(fig)
-    return path
-
-
-def smooth(values: list[float]) -> list[float]:
-    """Moving average over ~1/15 of the run."""
-    w = max(1, len(values) // 15)
-    return [sum(values[max(0, i - w + 1):i + 1]) / len(values[max(0, i - w + 1):i + 1])
-            for i in range(len(values))]
-
-
-def stability(run: Path) -> dict:
-    """Loss and gradient-norm statistics of a training run's ``metrics.csv``: per part the
-    median and maximum gradient norm (before clipping) and the last quarter's median against
-    the first quarter's (bounded: the ratio stays near or below 1), and the skipped steps."""
-    rows = read_metrics(run)
-    q = max(1, len(rows) // 4)
-    _, loss = curve(rows, "loss")
-    out = {"steps": int(rows[-1]["step"]), "skipped": int(rows[-1]["skipped"]),
-           "loss_first_quarter": float(np.median(loss[:q])),
-           "loss_last_quarter": float(np.median(loss[-q:])), "parts": {}}
-    for key in ("grad_norm", *GRAD_LABELS):
-        _, values = curve(rows, key)
-        if values:
-            out["parts"][key] = {"median": float(np.median(values)), "max": max(values),
-                                 "last_over_first_quarter": float(
-                                     np.median(values[-q:]) / np.median(values[:q]))}
-    return out
+from usplat_dr.training.run_log import GRAD_LABELS
 
 
 def stability_lines(stable: dict) -> list[str]:

@@ -4,9 +4,10 @@ learning rate, skipped steps, the rate and time), TensorBoard scalars (when Tens
 installed) and the progress bar.
 
 ``RunLog`` writes them while ``Trainer.fit`` runs; ``read_metrics`` and ``curve`` read
-``metrics.csv`` back (``usplat_dr.jobs.report``'s curves and stability tables). Nothing is
-lost: ``metrics.csv`` is rewritten atomically when a run (re)starts and appended a row at a
-time, flushed, and a write that finds the disk full is a ``DiskFull`` naming the file.
+``metrics.csv`` back, and ``stability`` (loss and gradient-norm statistics) and ``curves`` (the
+chart) summarise it. Nothing is lost: ``metrics.csv`` is rewritten atomically when a run
+(re)starts and appended a row at a time, flushed, and a write that finds the disk full is a
+``DiskFull`` naming the file.
 """
 
 import contextlib
@@ -17,12 +18,18 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from usplat_dr.io import atomic_open
+from usplat_dr.model.uniquesplat import VARIANTS
 
 #: The file of a run folder that ``RunLog`` writes and ``read_metrics`` reads.
 METRICS_FILE = "metrics.csv"
+#: The gradient-norm columns of the network's parts (before clipping), and their labels.
+GRAD_LABELS = {"grad_primary": "primary network", "grad_agnostic": "view-agnostic (e_a, H_a)",
+               "grad_specific": "view-specific H_s",
+               "grad_view_features": "view-specific features (ResNet, Proj, phi)"}
 
 #: The errors of a write that found no room: a full disk, a full quota, a file-size limit
 #: (``ulimit -f``, with SIGXFSZ ignored as batch schedulers do).
@@ -187,3 +194,65 @@ def curve(rows: list[dict], key: str) -> tuple[list[int], list[float]]:
     """
     points = [(int(r["step"]), float(r[key])) for r in rows if r.get(key)]
     return [s for s, _ in points], [v for _, v in points]
+
+
+# ---- summaries --------------------------------------------------------------------------------
+
+def curves(runs: dict, path: Path) -> Path:
+    """Training loss, PSNR and the gradient norms of the network's parts (before clipping) of
+    the runs ``{variant: run folder}``, as a PNG at ``path``."""
+    import matplotlib  # only for the chart (start-up time: the trainer imports this module)
+
+    matplotlib.use("Agg")  # files only, no display
+    import matplotlib.pyplot as plt  # after choosing the backend
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.4))
+    for variant, run in runs.items():
+        rows = read_metrics(run)
+        for ax, key in ((axes[0], "loss"), (axes[1], "psnr")):
+            steps, values = curve(rows, key)
+            line, = ax.plot(steps, values, alpha=0.25, linewidth=0.8)
+            ax.plot(steps, smooth(values), color=line.get_color(),
+                    label=VARIANTS.get(variant, variant))
+        for key, label in GRAD_LABELS.items():
+            steps, values = curve(rows, key)
+            if values:
+                axes[2].plot(steps, smooth(values), linewidth=1,
+                             label=f"{VARIANTS.get(variant, variant)[:3]} {label}")
+    axes[0].set(xlabel="step", ylabel="training loss (MSE)", yscale="log")
+    axes[1].set(xlabel="step", ylabel="training PSNR (dB)")
+    axes[2].set(xlabel="step", ylabel="gradient norm before clipping", yscale="log")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+    return path
+
+
+def smooth(values: list[float]) -> list[float]:
+    """Moving average over ~1/15 of the run."""
+    w = max(1, len(values) // 15)
+    return [sum(values[max(0, i - w + 1):i + 1]) / len(values[max(0, i - w + 1):i + 1])
+            for i in range(len(values))]
+
+
+def stability(run: Path) -> dict:
+    """Loss and gradient-norm statistics of a training run's ``metrics.csv``: per part the
+    median and maximum gradient norm (before clipping) and the last quarter's median against
+    the first quarter's (bounded: the ratio stays near or below 1), and the skipped steps."""
+    rows = read_metrics(run)
+    q = max(1, len(rows) // 4)
+    _, loss = curve(rows, "loss")
+    out = {"steps": int(rows[-1]["step"]), "skipped": int(rows[-1]["skipped"]),
+           "loss_first_quarter": float(np.median(loss[:q])),
+           "loss_last_quarter": float(np.median(loss[-q:])), "parts": {}}
+    for key in ("grad_norm", *GRAD_LABELS):
+        _, values = curve(rows, key)
+        if values:
+            out["parts"][key] = {"median": float(np.median(values)), "max": max(values),
+                                 "last_over_first_quarter": float(
+                                     np.median(values[-q:]) / np.median(values[:q]))}
+    return out
