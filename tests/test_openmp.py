@@ -15,12 +15,15 @@ def clean(monkeypatch):
     for var in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY", _openmp.ENV_VAR):
         monkeypatch.delenv(var, raising=False)
     monkeypatch.delitem(sys.modules, "torch", raising=False)  # as if torch were not loaded
+    monkeypatch.setattr(_openmp, "outcome", _openmp.outcome)  # restored after the test
     return monkeypatch
 
 
 def test_sets_the_default_spin_count(clean):
     assert _openmp.configure() == _openmp.DEFAULT_SPIN
     assert os.environ["GOMP_SPINCOUNT"] == _openmp.DEFAULT_SPIN
+    assert _openmp.describe() == ("GOMP_SPINCOUNT=30000, OMP_WAIT_POLICY unset: set by "
+                                  "usplat_dr (USPLAT_OMP_SPIN, default 30000)")
 
 
 def test_users_choice_wins(clean):
@@ -31,6 +34,8 @@ def test_users_choice_wins(clean):
     clean.delenv("GOMP_SPINCOUNT")
     clean.setenv("OMP_WAIT_POLICY", "PASSIVE")
     assert _openmp.configure() is None and "GOMP_SPINCOUNT" not in os.environ
+    assert _openmp.describe() == ("GOMP_SPINCOUNT unset, OMP_WAIT_POLICY=PASSIVE: set outside "
+                                  "usplat_dr (it wins)")
 
 
 def test_off_and_too_late_leave_libgomp_alone(clean):
@@ -39,6 +44,7 @@ def test_off_and_too_late_leave_libgomp_alone(clean):
     clean.delenv(_openmp.ENV_VAR)
     clean.setitem(sys.modules, "torch", object())  # torch (and libgomp) already loaded
     assert _openmp.configure() is None and "GOMP_SPINCOUNT" not in os.environ
+    assert "torch was imported before it" in _openmp.describe()
 
 
 def test_bad_value_names_the_variable(clean):

@@ -22,16 +22,34 @@ import sys
 ENV_VAR = "USPLAT_OMP_SPIN"
 DEFAULT_SPIN = "30000"
 
+#: What the last ``configure`` did, in words (``describe``; ``usplat doctor``).
+outcome = "not configured (usplat_dr was not imported?)"
+
 
 def configure() -> str | None:
     """Set ``GOMP_SPINCOUNT`` when nothing else decides it; return the value set (or None)."""
+    global outcome
     choice = os.environ.get(ENV_VAR, DEFAULT_SPIN).strip().lower()
-    if choice == "off" or "torch" in sys.modules:
-        return None  # libgomp's default, or too late: torch (and libgomp) already loaded
+    if choice == "off":
+        outcome = f"libgomp's default ({ENV_VAR}=off)"
+        return None
+    if "torch" in sys.modules:  # too late: torch (and libgomp) already loaded
+        outcome = "not set by usplat_dr: torch was imported before it"
+        return None
     if "GOMP_SPINCOUNT" in os.environ or "OMP_WAIT_POLICY" in os.environ:
+        outcome = "set outside usplat_dr (it wins)"
         return None
     if not choice.isdigit():
         raise ValueError(f"{ENV_VAR} must be a non-negative integer or 'off', got "
                          f"{os.environ[ENV_VAR]!r}")
     os.environ["GOMP_SPINCOUNT"] = choice
+    outcome = f"set by usplat_dr ({ENV_VAR}, default {DEFAULT_SPIN})"
     return choice
+
+
+def describe() -> str:
+    """The OpenMP spin setting now and who chose it, e.g. ``GOMP_SPINCOUNT=30000,
+    OMP_WAIT_POLICY unset: set by usplat_dr (USPLAT_OMP_SPIN, default 30000)``."""
+    values = ", ".join(f"{k}={os.environ[k]}" if k in os.environ else f"{k} unset"
+                       for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY"))
+    return f"{values}: {outcome}"

@@ -25,6 +25,15 @@ def test_doctor_reports_and_succeeds_here():
     # any suitable libLLVM: 19 here, 20 or later on newer machines
     loaded = re.search(r"loaded: libLLVM (\d+)\.", r.stdout)
     assert loaded and int(loaded.group(1)) >= 19, r.stdout
+    # the pins (on: ``usplat`` turns them on), the OpenMP spin, the core keeper's probe and
+    # what ``auto`` decides (on or off: it depends on the machine and its load)
+    for needle in ("portable numerics: on (USPLAT_PORTABLE=1)", "ATEN_CPU_CAPABILITY=avx2",
+                   "CPU code path: ", "OpenMP spin: GOMP_SPINCOUNT=",
+                   "idle-core wake-up: ", "hypervisor flag: "):
+        assert needle in r.stdout, needle
+    # haswell, pinned, where the host has AVX2 and FMA; the host's target elsewhere
+    assert re.search(r"Dr\.Jit LLVM target: \S+, \d+ float lanes \((not )?pinned", r.stdout)
+    assert re.search(r"auto, a CPU run on \d+ core\(s\): core keeper (on|off): ", r.stdout)
 
 
 def test_doctor_exits_nonzero_with_advice_without_llvm(tmp_path):
@@ -161,7 +170,7 @@ def test_cli_commands_are_a_table_of_job_modules():
     "usplat_dr.model.encoder.primary", "usplat_dr.model.sh_rotation",
     "usplat_dr.model.hypernet.resnet", "usplat_dr.jobs.report", "usplat_dr.jobs.arguments",
     "usplat_dr.data.types", "usplat_dr.config", "usplat_dr.training.distributed",
-    "usplat_dr.training.checkpoints"])
+    "usplat_dr.training.checkpoints", "usplat_dr.training.cores"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module))
     assert result.attempted > 0 and result.failed == 0

@@ -262,6 +262,7 @@ def test_a_training_set_that_shrank_under_a_resumed_run(run, tmp_path, capsys):
     ("dataset.view_sampler.initial_min_distance_between_context_views=-1", "must be >= 0"),
     ("dataset.view_sampler.min_distance_to_context_views=-1", "must be >= 0"),
     ("dataset.view_sampler.warm_up_steps=-5", "warm_up_steps=-5"),
+    ("keep_cores_awake=sometimes", "true, false or auto"),
 ])
 def test_out_of_range_values_stop_before_training(data, tmp_path, capsys, monkeypatch, value,
                                                   named):

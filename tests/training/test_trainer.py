@@ -3,6 +3,7 @@ distributed data parallel (2 gloo ranks) against one process on the combined bat
 
 import csv
 import dataclasses
+import logging
 import os
 import subprocess
 import sys
@@ -321,7 +322,7 @@ def test_lpips_joins_the_loss_at_its_step(synth_root, tmp_path):
 
 @pytest.mark.parametrize("setting", ["true", "false"])
 def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, monkeypatch,
-                                                        setting):
+                                                        setting, caplog):
     from usplat_dr.training import cores as _cores
 
     seen = []
@@ -339,7 +340,10 @@ def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, mo
     monkeypatch.setattr(_cores, "CoreKeeper", Recording)
     trainer = Trainer(config(synth_root, tmp_path, 1, f"keep_cores_awake={setting}",
                              "threads=1"))
-    trainer.fit()
+    with caplog.at_level(logging.INFO, logger="usplat_dr.training.trainer"):
+        trainer.fit()
+    on = "on" if setting == "true" else "off"
+    assert f"core keeper {on}: keep_cores_awake={setting}" in caplog.messages
     if setting == "false":
         assert seen == []
     else:  # started with one spinner per core (on Linux), stopped when fit returned

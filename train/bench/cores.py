@@ -1,5 +1,6 @@
 """Training steps with the cores kept awake (``usplat_dr.training.cores.CoreKeeper``, what ``usplat
-train`` does by default when its threads cover every core) against without: each setting in
+train`` does with ``keep_cores_awake=true``, and by default where its threads cover every core and
+its start-up probe finds idle cores slow to wake) against without: each setting in
 its own processes, alternated round by round (a busy host slows both alike), the spinners
 running for the whole process as in a training run. Per process (``training.py --awake on|off``
 beside this script, run as a subprocess): the median of ``--steps`` timed steps (after 3 warm-up

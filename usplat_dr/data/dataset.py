@@ -40,6 +40,7 @@ from pathlib import Path
 
 import torch
 import torch.distributed
+from torch import Tensor
 from torch.utils.data import IterableDataset, get_worker_info
 
 from usplat_dr.config import (
@@ -362,105 +363,143 @@ class ChunkDataset(IterableDataset):
 
     def _example(self, scene: object, chunk_path: Path, gen: torch.Generator,
                  summary: Summary, run: str | None = None) -> dict | None:
-        """One example of ``scene``; ``run``: the key it goes by (``_runs``), default the
-        scene's own."""
+        """One example of ``scene``, or None when it is skipped (counted in ``summary``, with a
+        warning for the reasons in ``Summary.WARN``); ``run``: the key it goes by
+        (``_runs``), default the scene's own."""
         key = scene.get("key", "?") if isinstance(scene, dict) else "?"
+        try:
+            extrinsics, intrinsics = self._cameras(scene, key, chunk_path)
+            ctx, tgt = self._frames(run or key, extrinsics.shape[0], intrinsics, gen)
+            near, far = self._near_far(scene)
+            images, shape = self._images(scene, sorted(set(ctx.tolist()) | set(tgt.tolist())))
+            example = {"context": _side(scene, extrinsics, intrinsics, images, ctx, near, far),
+                       "target": _side(scene, extrinsics, intrinsics, images, tgt, near, far),
+                       "scene": run or key}
+            _check_maps(scene, shape)
+            return self._finish(example, gen)
+        except _Skip as e:
+            summary[e.reason] += 1
+            summary.first.setdefault(e.reason, str(run or key))
+            if e.reason in Summary.WARN:
+                log.warning("skipping scene %s in %s: %s%s", key, chunk_path, e.reason,
+                            f" ({e.detail})" if e.detail else "")
+            return None
 
-        def skip(reason: str, detail: str = "") -> None:
-            summary[reason] += 1
-            summary.first.setdefault(reason, str(run or key))
-            if reason in Summary.WARN:
-                log.warning("skipping scene %s in %s: %s%s", key, chunk_path, reason,
-                            f" ({detail})" if detail else "")
-
+    def _cameras(self, scene: object, key: object, chunk_path: Path) -> tuple[Tensor, Tensor]:
+        """The scene's checked record and cameras: (extrinsics [V, 4, 4], intrinsics);
+        ``key`` as the record holds it (a bad record may hold anything)."""
         try:
             check_scene(scene)
         except BadSceneError as e:
-            return skip("malformed scene", str(e))
+            raise _Skip("malformed scene", str(e)) from None
         if key not in self.index:
-            return skip("not in index.json")
+            raise _Skip("not in index.json")
         if self.index[key] != chunk_path and self.index[key] in self._chunk_set:
             # the copy index.json points to is read too (an index naming a missing chunk is
             # answered by the copy that exists)
-            return skip("duplicate key", f"index.json places this key in {self.index[key]}")
+            raise _Skip("duplicate key", f"index.json places this key in {self.index[key]}")
         try:
-            extrinsics, intrinsics = cameras_to_matrices(scene["cameras"].float())
+            return cameras_to_matrices(scene["cameras"].float())
         except BadSceneError as e:
-            return skip("bad camera", str(e))
-        num_views = extrinsics.shape[0]
-        try:
-            ctx, tgt = self.view_sampler.sample(run or key, num_views, gen)
-        except FramesNotInSceneError as e:
-            return skip("frames not in scene", str(e))
-        except NullEntryError:  # the index's own "not evaluated"
-            return skip("null in evaluation index")
-        except ViewSamplingError:  # too few frames for the bounded sampler, no index entry
-            return skip("sampler: no views")
-        if (fov_degrees(intrinsics) > self.cfg.max_fov).any():
-            return skip("fov over max_fov")
-        if self.cfg.near is None or self.cfg.far is None:
-            if "near_far" not in scene:
-                return skip("malformed scene", "no near/far in the config or the scene")
-            try:
-                near, far = (float(x) for x in scene["near_far"])
-            except (TypeError, ValueError, RuntimeError) as e:
-                return skip("malformed scene", f"near_far is not two numbers ({e})")
-            if not (NEAR_FAR_RANGE[0] <= near < far <= NEAR_FAR_RANGE[1]):
-                return skip("malformed scene", f"near_far must be {NEAR_FAR_RANGE[0]:g} <= "
-                                                f"near < far <= {NEAR_FAR_RANGE[1]:g}, got "
-                                                f"{near}, {far}")
-        else:
-            near, far = self.cfg.near, self.cfg.far
+            raise _Skip("bad camera", str(e)) from None
 
-        needed = sorted(set(ctx.tolist()) | set(tgt.tolist()))
-        images = {}
+    def _frames(self, run: str, num_views: int, intrinsics: Tensor, gen: torch.Generator
+               ) -> tuple[Tensor, Tensor]:
+        """The sampler's context and target frames of scene ``run``."""
         try:
-            for i in needed:
+            ctx, tgt = self.view_sampler.sample(run, num_views, gen)
+        except FramesNotInSceneError as e:
+            raise _Skip("frames not in scene", str(e)) from None
+        except NullEntryError:  # the index's own "not evaluated"
+            raise _Skip("null in evaluation index") from None
+        except ViewSamplingError:  # too few frames for the bounded sampler, no index entry
+            raise _Skip("sampler: no views") from None
+        if (fov_degrees(intrinsics) > self.cfg.max_fov).any():
+            raise _Skip("fov over max_fov")
+        return ctx, tgt
+
+    def _near_far(self, scene: dict) -> tuple[float, float]:
+        """The config's near/far, else the scene's ``near_far`` record, checked."""
+        if self.cfg.near is not None and self.cfg.far is not None:
+            return self.cfg.near, self.cfg.far
+        if "near_far" not in scene:
+            raise _Skip("malformed scene", "no near/far in the config or the scene")
+        try:
+            near, far = (float(x) for x in scene["near_far"])
+        except (TypeError, ValueError, RuntimeError) as e:
+            raise _Skip("malformed scene", f"near_far is not two numbers ({e})") from None
+        if not (NEAR_FAR_RANGE[0] <= near < far <= NEAR_FAR_RANGE[1]):
+            raise _Skip("malformed scene", f"near_far must be {NEAR_FAR_RANGE[0]:g} <= near < "
+                                           f"far <= {NEAR_FAR_RANGE[1]:g}, got {near}, {far}")
+        return near, far
+
+    def _images(self, scene: dict, needed: list[int]) -> tuple[dict, tuple[int, int]]:
+        """The frames ``needed``, decoded ({frame: uint8 [3, H, W]}), and their one shape."""
+        images = {}
+        for i in needed:
+            try:
                 images[i] = decode_image(scene["images"][i])
-        except BadSceneError as e:
-            return skip("corrupt image", f"frame {i}: {e}")
+            except BadSceneError as e:
+                raise _Skip("corrupt image", f"frame {i}: {e}") from None
         shapes = {tuple(im.shape[1:]) for im in images.values()}
         if len(shapes) != 1:
-            return skip("malformed scene", f"frames have different shapes {sorted(shapes)}")
+            raise _Skip("malformed scene", f"frames have different shapes {sorted(shapes)}")
         if self.cfg.skip_bad_shape and shapes != {tuple(self.cfg.original_image_shape)}:
-            return skip("unexpected image shape")  # the field's: other shapes are skipped
+            raise _Skip("unexpected image shape")  # the field's: other shapes are skipped
+        return images, shapes.pop()
 
-        def views(indices: torch.Tensor) -> dict:
-            v = {
-                "extrinsics": extrinsics[indices],
-                "intrinsics": intrinsics[indices],
-                "image": torch.stack([images[i] for i in indices.tolist()]),
-                "near": torch.full((len(indices),), near),
-                "far": torch.full((len(indices),), far),
-                "index": indices.to(torch.int64),
-            }
-            if "depths" in scene:
-                v["depth"] = scene["depths"][indices].float()
-            if "materials" in scene:  # synthetic sets: material codes, as floats (resizing)
-                v["material"] = scene["materials"][indices].float()
-            return v
-
-        example = {"context": views(ctx), "target": views(tgt), "scene": run or key}
-        shape = shapes.pop()
-        if "depths" in scene and tuple(scene["depths"].shape[1:]) != shape:
-            return skip("bad depth", "depth maps and images differ in shape")
-        if "materials" in scene and tuple(scene["materials"].shape[1:]) != shape:
-            return skip("malformed scene", "material maps and images differ in shape")
+    def _finish(self, example: dict, gen: torch.Generator) -> dict:
+        """The field's shims: the baseline made 1 (when configured), the training stage's
+        flip, the crop to ``image_shape``, images as floats in [0, 1]."""
         if self.cfg.make_baseline_1:
             try:
                 example, _ = normalize_baseline(example, self.cfg.baseline_scale_bounds)
             except ValueError:
-                return skip("baseline below 1e-3")
+                raise _Skip("baseline below 1e-3") from None
         if self.stage == "train" and self.cfg.augment:
             example = augment_flip(example, gen)
         for side in ("context", "target"):
             try:
                 v = crop_views(example[side], self.cfg.image_shape)
             except ValueError as e:
-                return skip("malformed scene", str(e))
+                raise _Skip("malformed scene", str(e)) from None
             v["image"] = v["image"].float() / 255.0
             example[side] = v
         return example
+
+
+class _Skip(Exception):
+    """A scene ``ChunkDataset`` skips: the ``Summary`` reason and a detail for the warning."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(reason)
+        self.reason, self.detail = reason, detail
+
+
+def _side(scene: dict, extrinsics: Tensor, intrinsics: Tensor, images: dict,
+          indices: Tensor, near: float, far: float) -> dict:
+    """One side of an example (see ``usplat_dr.data.shims`` for the fields), uint8 images."""
+    v = {
+        "extrinsics": extrinsics[indices],
+        "intrinsics": intrinsics[indices],
+        "image": torch.stack([images[i] for i in indices.tolist()]),
+        "near": torch.full((len(indices),), near),
+        "far": torch.full((len(indices),), far),
+        "index": indices.to(torch.int64),
+    }
+    if "depths" in scene:
+        v["depth"] = scene["depths"][indices].float()
+    if "materials" in scene:  # synthetic sets: material codes, as floats (resizing)
+        v["material"] = scene["materials"][indices].float()
+    return v
+
+
+def _check_maps(scene: dict, shape: tuple[int, int]) -> None:
+    """Depth and material maps, where the scene has them, of the images' shape."""
+    if "depths" in scene and tuple(scene["depths"].shape[1:]) != shape:
+        raise _Skip("bad depth", "depth maps and images differ in shape")
+    if "materials" in scene and tuple(scene["materials"].shape[1:]) != shape:
+        raise _Skip("malformed scene", "material maps and images differ in shape")
 
 
 @dataclass(frozen=True)

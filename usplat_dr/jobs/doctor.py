@@ -6,7 +6,7 @@ import os
 import platform
 import sys
 
-from usplat_dr import _llvm
+from usplat_dr import _llvm, _openmp, portable
 
 
 def _version(module: str) -> str | None:
@@ -76,9 +76,7 @@ def run(args: argparse.Namespace | None = None) -> int:
         import torch  # may be missing or broken: reported, not raised
 
         print(f"  threads: {torch.get_num_threads()}")
-        # usplat_dr/_openmp.py: set on import, before torch loads
-        print(f"  GOMP_SPINCOUNT = {os.environ.get('GOMP_SPINCOUNT', '(unset)')}, "
-              f"OMP_WAIT_POLICY = {os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
+        print(f"  CPU code path: {torch.backends.cpu.get_cpu_capability()}")
         cuda = torch.cuda.is_available()
         print(f"  CUDA: {torch.cuda.get_device_name(0) if cuda else 'no GPU'}")
         if cuda and "cuda" not in backends:
@@ -87,6 +85,9 @@ def run(args: argparse.Namespace | None = None) -> int:
     except Exception as e:  # noqa: BLE001
         print(f"  unavailable ({e})")
 
+    _numerics("llvm" in backends)
+    _core_keeper()
+
     if problems:
         print("\nProblems:")
         for p in problems:
@@ -94,6 +95,46 @@ def run(args: argparse.Namespace | None = None) -> int:
         return 1
     print("\nAll good.")
     return 0
+
+
+def _numerics(llvm: bool) -> None:
+    """Portable numerics (``usplat_dr.portable``) and the OpenMP spin (``usplat_dr._openmp``),
+    as this process has them (``usplat`` turns portable numerics on before torch loads)."""
+    pins = portable.describe()
+    print("\nNumerics and threads")
+    print(f"  portable numerics: {'on' if pins['portable'] else 'off'} ({portable.ENV_VAR}="
+          f"{os.environ.get(portable.ENV_VAR, '(unset)')})")
+    print("  torch pins: " + ", ".join(f"{k}={pins[k] or '(unset)'}" for k in portable.TORCH_ENV))
+    target = portable.drjit_target() if llvm else None
+    if target is None:
+        print("  Dr.Jit LLVM target: unknown")
+    else:
+        pinned = "pinned" if pins["drjit_target"] else "not pinned: the host CPU's"
+        print(f"  Dr.Jit LLVM target: {target[0]}, {target[2]} float lanes ({pinned})")
+    print(f"  OpenMP spin: {_openmp.describe()}")
+
+
+def _core_keeper() -> None:
+    """The wake-up probe and what ``keep_cores_awake: auto`` decides here for a CPU run on
+    every core (``usplat_dr.training.cores``)."""
+    print("\nCore keeper (keep_cores_awake)")
+    try:  # the training package imports torch and the model: may be broken (reported above)
+        from usplat_dr.training import cores as _cores
+    except Exception as e:  # noqa: BLE001
+        print(f"  unavailable ({e})")
+        return
+    cpus = len(_cores.available_cpus())
+    probe = _cores.probe_wake_latency()
+    on, why = _cores.decide("auto", cpus, "cpu", measure=lambda: probe)
+    hyper = {True: "yes", False: "no", None: "unknown"}[_cores.hypervisor()]
+    if probe is None:
+        print("  idle-core wake-up: the probe could not run here")
+    else:
+        print(f"  idle-core wake-up: {probe.median_us:.0f} us median of {probe.rounds} (10-90 %: "
+              f"{probe.low_us:.0f}-{probe.high_us:.0f} us), threshold "
+              f"{_cores.WAKE_THRESHOLD_US:.0f} us")
+    print(f"  hypervisor flag: {hyper}, cpuidle driver: {_cores.cpuidle_driver() or 'unknown'}")
+    print(f"  auto, a CPU run on {cpus} core(s): {_cores.log_line(on, why)}")
 
 
 if __name__ == "__main__":

@@ -107,6 +107,7 @@ RANGES = {
                  f"{os.cpu_count()}); or null: cores / ranks")),
     "data_loader.batch_size": (lambda v: v >= 1, "must be >= 1"),
     "data_loader.num_workers": (lambda v: v >= 0, "must be >= 0"),
+    "keep_cores_awake": (lambda v: v in (True, False, None, "auto"), "must be true, false or auto"),
 }
 
 
@@ -155,8 +156,9 @@ class RootCfg:
     output_dir: str = "outputs/train"
     threads: int | None = None  # torch and Dr.Jit threads per process (None: cores / ranks)
     # idle-priority spinners that keep the cores from halting between the run's threads
-    # (usplat_dr.training.cores); None: on for a CPU run whose threads cover all of its cores
-    keep_cores_awake: bool | None = None
+    # (usplat_dr.training.cores); auto (or null): on for a CPU run whose threads cover all of
+    # its cores on a VM whose idle cores a probe at start finds slow to wake
+    keep_cores_awake: bool | str | None = "auto"
     name: str | None = None  # a label for the run
     model: ModelSection = field(default_factory=ModelSection)
     dataset: DatasetSectionCfg = field(default_factory=DatasetSectionCfg)

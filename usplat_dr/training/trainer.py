@@ -641,9 +641,12 @@ class Trainer:
 
     def _cores_awake(self) -> contextlib.AbstractContextManager:
         """Idle-priority spinners (``CoreKeeper``) for the block where ``keep_cores_awake``
-        wants them (``usplat_dr.training.cores.wanted``), else a context that does nothing."""
-        if _cores.wanted(self.config.keep_cores_awake, torch.get_num_threads(),
-                         self.device.type):
+        wants them (``usplat_dr.training.cores.decide``: the setting, or a probe of how fast
+        idle cores wake), else a context that does nothing; logs which and why."""
+        on, why = _cores.decide(self.config.keep_cores_awake, torch.get_num_threads(),
+                                self.device.type)
+        log.info("%s", _cores.log_line(on, why))
+        if on:
             return _cores.CoreKeeper()
         return contextlib.nullcontext()
 
