@@ -439,20 +439,27 @@ def test_a_reused_encoding_and_given_delta_w_render_what_forward_renders():
         plain = base(*args)
         zeroed = base(*args, delta_w={"to_disparity.2": zero})
     # Delta W = U V = 0 through the per-target path: the same Gaussians up to the float
-    # rounding of a convolution batched differently (measured: means 2-5e-5 on values up to
-    # ~100, i.e. 5e-7 relative; opacities 1e-7). Compared before rendering: near-equal depths
+    # rounding of a convolution batched differently, which the depth (up to far = 100)
+    # amplifies: measured at 1 and 2 threads, means differ by <= 1.2e-4 on values up to ~100
+    # (elementwise <= 3e-6 relative), covariances <= 2.2e-5 relative, opacities 1.2e-7,
+    # colour coefficients 0. Bounds on the norm of the difference relative to the values
+    # (5x-100x above those) hold on every thread count and CPU; a wrong layer moves them by
+    # 65x (means) and 0.12 (opacities), below. Compared before rendering: near-equal depths
     # can swap places in the depth sort under such rounding and move a pixel by far more.
     assert zeroed.per_target and not plain.per_target
     g, h = zeroed.gaussians, plain.gaussians
-    assert torch.allclose(g.means, h.means, rtol=1e-5, atol=1e-6)
-    assert torch.allclose(g.opacities, h.opacities, rtol=0, atol=1e-6)
-    assert torch.allclose(g.covariances, h.covariances, rtol=1e-5, atol=1e-8)
-    assert torch.allclose(g.harmonics, h.harmonics, rtol=0, atol=1e-6)
+
+    def rel(a, b):
+        return ((a - b).norm() / b.norm()).item()
+
+    assert rel(g.means, h.means) < 1e-5 and rel(g.covariances, h.covariances) < 1e-4
+    assert (g.opacities - h.opacities).abs().max() < 1e-5
+    assert (g.harmonics - h.harmonics).abs().max() < 1e-5  # no Delta W on to_gaussians
     # and a Delta W that is not zero moves them far beyond that
     with torch.no_grad():
         moved = base(*args, delta_w={"to_disparity.2": dataclasses.replace(
             zero, bias=torch.full((3, spec.out_channels), 0.5))}, render=False).gaussians
-    assert (moved.opacities - h.opacities).abs().max() > 1e-2
+    assert rel(moved.means, h.means) > 1e-2 and (moved.opacities - h.opacities).abs().max() > 1e-2
 
 
 def test_a_wrong_encoding_or_delta_w_names_the_argument():
