@@ -63,3 +63,16 @@ def _restore_environment():
         os.environ.update(saved)
         if not portable.enabled():
             portable.unpin_drjit()
+
+
+@pytest.fixture(scope="module")
+def user_scene(tmp_path_factory):
+    """A user's own scene: the synthetic truth of tests/data/test_importers.py (images with
+    known cameras) as a binary COLMAP model (sparse/0) and a transforms.json."""
+    from tests.data.test_importers import Truth  # a test module: only when a test asks
+
+    t = Truth(tmp_path_factory.mktemp("scene"))
+    t.write_colmap_binary(t.root / "sparse" / "0")
+    t.write_nerfstudio()
+    return t
+

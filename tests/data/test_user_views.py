@@ -1,66 +1,58 @@
 """A user's images and camera file (COLMAP model or transforms.json) as model inputs: the
-cameras of the synthetic truth of tests/data/test_importers.py, cropped as the datasets crop."""
+cameras of the synthetic truth of tests/data/test_importers.py (the user_scene fixture),
+cropped as the datasets crop."""
 
 import numpy as np
 import pytest
 import torch
 
-from tests.data.test_importers import Truth
 from usplat_dr.data.shims import cropped_intrinsics, rescale_and_crop
 from usplat_dr.data.user_views import context_views, read_cameras, target_cameras
 
 SHAPE = (32, 32)  # the model's image shape: the 48x64 images are resized to 32x43, cropped
 
 
-@pytest.fixture(scope="module")
-def truth(tmp_path_factory):
-    t = Truth(tmp_path_factory.mktemp("scene"))
-    t.write_colmap_binary(t.root / "sparse" / "0")
-    t.write_nerfstudio()
-    return t
-
-
 @pytest.mark.parametrize("source", ["colmap", "transforms.json", "nerfstudio folder"])
-def test_context_views_hold_the_true_cameras_and_cropped_images(truth, source):
-    cameras = {"colmap": truth.root / "sparse" / "0", "nerfstudio folder": truth.root,
-               "transforms.json": truth.root / "transforms.json"}[source]
+def test_context_views_hold_the_true_cameras_and_cropped_images(user_scene, source):
+    cameras = {"colmap": user_scene.root / "sparse" / "0", "nerfstudio folder": user_scene.root,
+               "transforms.json": user_scene.root / "transforms.json"}[source]
     pick = [4, 1]  # not in file order: the images choose their cameras by name
-    views = context_views([truth.root / "images" / truth.names[i] for i in pick],
+    views = context_views([user_scene.root / "images" / user_scene.names[i] for i in pick],
                           read_cameras(cameras), SHAPE)
-    true_k = torch.from_numpy(truth.k_norm[pick]).float()
-    images, k = rescale_and_crop(torch.from_numpy(truth.images[pick]).permute(0, 3, 1, 2),
+    true_k = torch.from_numpy(user_scene.k_norm[pick]).float()
+    images, k = rescale_and_crop(torch.from_numpy(user_scene.images[pick]).permute(0, 3, 1, 2),
                                  true_k, SHAPE)
     assert torch.equal(views.images, images)
-    # float32 of the float64 truth (the importers' own tolerance, 1e-5)
+    # float32 of the float64 user_scene (the importers' own tolerance, 1e-5)
     assert torch.allclose(views.intrinsics, k, atol=1e-5)
-    assert torch.allclose(views.extrinsics, torch.from_numpy(truth.c2w[pick]).float(),
+    assert torch.allclose(views.extrinsics, torch.from_numpy(user_scene.c2w[pick]).float(),
                           atol=1e-5)
     if source == "colmap":  # sparse points set near/far; they bracket the true depths
-        depths = truth.depths()
+        depths = user_scene.depths()
         assert views.near < depths[depths > 0].min() and views.far > depths.max()
     else:
         assert views.near is None and views.far is None
 
 
-def test_target_cameras_are_cropped_as_images_would_be(truth):
-    te, tk = target_cameras(read_cameras(truth.root / "sparse" / "0"), SHAPE)
-    want = cropped_intrinsics(torch.from_numpy(truth.k_norm).float(), (48, 64), SHAPE)
+def test_target_cameras_are_cropped_as_images_would_be(user_scene):
+    te, tk = target_cameras(read_cameras(user_scene.root / "sparse" / "0"), SHAPE)
+    want = cropped_intrinsics(torch.from_numpy(user_scene.k_norm).float(), (48, 64), SHAPE)
     assert torch.allclose(tk, want, atol=1e-5)  # float32 rounding, as above
-    assert torch.allclose(te, torch.from_numpy(truth.c2w).float(), atol=1e-5)
+    assert torch.allclose(te, torch.from_numpy(user_scene.c2w).float(), atol=1e-5)
     # covering 32x32 from 48x64 resizes to 32x43 (43 = round(64 x 32 / 48)) and cuts the
     # width to 32: normalised fx grows by 43/32, fy stays (float32 rounding, 1e-6)
-    assert np.isclose(float(tk[0, 0, 0] / truth.k_norm[0, 0, 0]), 43 / 32, atol=1e-6)
-    assert np.isclose(float(tk[0, 1, 1] / truth.k_norm[0, 1, 1]), 1.0, atol=1e-6)
+    assert np.isclose(float(tk[0, 0, 0] / user_scene.k_norm[0, 0, 0]), 43 / 32, atol=1e-6)
+    assert np.isclose(float(tk[0, 1, 1] / user_scene.k_norm[0, 1, 1]), 1.0, atol=1e-6)
 
 
-def test_user_mistakes_name_the_argument(truth, tmp_path):
-    scene = read_cameras(truth.root / "sparse" / "0")
+def test_user_mistakes_name_the_argument(user_scene, tmp_path):
+    scene = read_cameras(user_scene.root / "sparse" / "0")
     stray = tmp_path / "holiday.png"
-    stray.write_bytes((truth.root / "images" / truth.names[0]).read_bytes())
+    stray.write_bytes((user_scene.root / "images" / user_scene.names[0]).read_bytes())
     with pytest.raises(ValueError, match="image 'holiday.png' has no camera in"):
-        context_views([stray, truth.root / "images" / truth.names[1]], scene, SHAPE)
+        context_views([stray, user_scene.root / "images" / user_scene.names[1]], scene, SHAPE)
     with pytest.raises(ValueError, match="needs at least 2 context images"):
-        context_views([truth.root / "images" / truth.names[1]], scene, SHAPE)
+        context_views([user_scene.root / "images" / user_scene.names[1]], scene, SHAPE)
     with pytest.raises(FileNotFoundError, match="--images: .*nope.png does not exist"):
         context_views([tmp_path / "nope.png", stray], scene, SHAPE)
     with pytest.raises(FileNotFoundError, match="--cameras .* does not exist"):

@@ -1,5 +1,5 @@
 """``usplat render --images A B --cameras FILE``: a user's own images and camera file (COLMAP
-or transforms.json, from the synthetic truth of tests/data/test_importers.py) give novel views,
+or transforms.json, from the synthetic user_scene of tests/data/test_importers.py) give novel views,
 PNG frames, a video and a PLY with the shipped checkpoint, and the frames are what
 ``usplat_dr.load(...).predict(...)`` renders."""
 
@@ -9,24 +9,15 @@ from PIL import Image
 from plyfile import PlyData
 
 import usplat_dr
-from tests.data.test_importers import Truth
 from usplat_dr.cli import main
 from usplat_dr.data.user_views import context_views, read_cameras
 from usplat_dr.io.images import to_uint8
 from usplat_dr.jobs.render_video import targets
 
 
-@pytest.fixture(scope="module")
-def truth(tmp_path_factory):
-    t = Truth(tmp_path_factory.mktemp("scene"))
-    t.write_colmap_binary(t.root / "sparse" / "0")
-    t.write_nerfstudio()
-    return t
-
-
-def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(truth, tmp_path, capsys):
-    images = [str(truth.root / "images" / truth.names[i]) for i in (1, 3)]
-    sparse = str(truth.root / "sparse" / "0")
+def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene, tmp_path, capsys):
+    images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (1, 3)]
+    sparse = str(user_scene.root / "sparse" / "0")
     out = tmp_path / "out"
     assert main(["-q", "render", "--checkpoint", "tiny_full", "--images", *images,
                  "--cameras", sparse, "--frames", "4", "--out", str(out)]) == 0
@@ -50,14 +41,14 @@ def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(truth, tmp_
         assert np.array_equal(colour, to_uint8(pred.color[i].permute(1, 2, 0).numpy()))
 
 
-def test_a_transforms_json_with_its_cameras_as_the_path(truth, tmp_path):
-    images = [str(truth.root / "images" / truth.names[i]) for i in (0, 2)]
-    cameras = str(truth.root / "transforms.json")
+def test_a_transforms_json_with_its_cameras_as_the_path(user_scene, tmp_path):
+    images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (0, 2)]
+    cameras = str(user_scene.root / "transforms.json")
     out = tmp_path / "out"
     assert main(["-q", "render", "--checkpoint", "tiny_baseline", "--images", *images,
                  "--cameras", cameras, "--near", "2", "--far", "7", "--path", cameras,
                  "--out", str(out)]) == 0
-    assert len(list((out / "frames").glob("*.png"))) == len(truth.names)  # every camera
+    assert len(list((out / "frames").glob("*.png"))) == len(user_scene.names)  # every camera
 
 
 @pytest.mark.parametrize("extra, needle", [
@@ -67,10 +58,10 @@ def test_a_transforms_json_with_its_cameras_as_the_path(truth, tmp_path):
     (["--images", "{a}", "{b}", "--cameras", "{json}", "--near", "1"],
      "give both --near and --far"),
 ])
-def test_mistakes_name_the_argument(truth, capsys, extra, needle):
-    fill = {"{a}": str(truth.root / "images" / truth.names[0]),
-            "{b}": str(truth.root / "images" / truth.names[1]),
-            "{json}": str(truth.root / "transforms.json")}
+def test_mistakes_name_the_argument(user_scene, capsys, extra, needle):
+    fill = {"{a}": str(user_scene.root / "images" / user_scene.names[0]),
+            "{b}": str(user_scene.root / "images" / user_scene.names[1]),
+            "{json}": str(user_scene.root / "transforms.json")}
     assert main(["-q", "render", "--checkpoint", "tiny_full",
                  *[fill.get(x, x) for x in extra]]) == 2
     assert needle in capsys.readouterr().err

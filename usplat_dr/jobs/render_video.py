@@ -16,7 +16,12 @@ import numpy as np
 import torch
 
 from usplat_dr.data.types import model_inputs
-from usplat_dr.data.user_views import context_views, read_cameras, target_cameras
+from usplat_dr.data.user_views import (
+    UserViews,
+    context_views,
+    read_cameras,
+    target_cameras,
+)
 from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.camera_paths import camera_path
 from usplat_dr.io.images import colorize_depth, save_png
@@ -69,9 +74,9 @@ def one_example(args: argparse.Namespace) -> tuple:
     return model, load_example(dataset, index, args.scene)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_example_arguments(p, data_required=False)
-    own = p.add_argument_group("your own images (instead of --data)")
+def add_own_views_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments naming a user's own context views (``render``, ``view``)."""
+    own = p.add_argument_group("your own context views (instead of --data)")
     own.add_argument("--images", nargs="+", metavar="IMAGE",
                      help="two (or more) context images, named as in --cameras")
     own.add_argument("--cameras", help="their cameras: a COLMAP model folder (sparse/0) or a "
@@ -81,6 +86,33 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     own.add_argument("--far", type=float, help="far depth (as --near)")
     own.add_argument("--ignore-distortion", action="store_true",
                      help="drop lens distortion coefficients (else they are an error)")
+
+
+def check_own_views(args: argparse.Namespace) -> None:
+    """The mistakes in ``add_own_views_arguments``' arguments that need no file read."""
+    if args.cameras is None:
+        raise ValueError("--images needs --cameras FILE (a COLMAP model folder or a "
+                         "transforms.json)")
+    if (args.near is None) != (args.far is None):
+        raise ValueError("give both --near and --far, or neither")
+
+
+def own_views(args: argparse.Namespace) -> tuple[UserViews, float, float]:
+    """The context views ``--images`` and ``--cameras`` name, cropped to ``image_shape``, and
+    near/far (``--near``/``--far``, else from the sparse points)."""
+    check_own_views(args)
+    views = context_views(args.images, read_cameras(args.cameras, args.ignore_distortion),
+                          image_shape(args))
+    near, far = (args.near, args.far) if args.near is not None else (views.near, views.far)
+    if near is None:
+        raise ValueError(f"--cameras {args.cameras} has no sparse points to set near/far from: "
+                         f"give --near and --far (scene units)")
+    return views, near, far
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_example_arguments(p, data_required=False)
+    add_own_views_arguments(p)
     p.add_argument("--path", default="orbit", help="the target cameras: 'orbit' (context 0 -> "
                    "1 -> 0, then a wobble around each) or a camera file like --cameras")
     p.add_argument("--frames", type=at_least(2), default=60,
@@ -138,19 +170,9 @@ def targets(path: str, context_extrinsics: torch.Tensor, context_intrinsics: tor
 
 def predict_own_views(model, args: argparse.Namespace):
     """``--images`` and ``--cameras``: the model's ``Prediction`` for ``--path``."""
-    if args.cameras is None:
-        raise ValueError("--images needs --cameras FILE (a COLMAP model folder or a "
-                         "transforms.json)")
-    if (args.near is None) != (args.far is None):
-        raise ValueError("give both --near and --far, or neither")
-    shape = image_shape(args)
-    views = context_views(args.images, read_cameras(args.cameras, args.ignore_distortion),
-                          shape)
-    near, far = (args.near, args.far) if args.near is not None else (views.near, views.far)
-    if near is None:
-        raise ValueError(f"--cameras {args.cameras} has no sparse points to set near/far from: "
-                         f"give --near and --far (scene units)")
-    te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames, shape)
+    views, near, far = own_views(args)
+    te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames,
+                     tuple(views.images.shape[-2:]))
     return model.predict(views.images, intrinsics=views.intrinsics,
                          extrinsics=views.extrinsics, target_intrinsics=tk,
                          target_extrinsics=te, near=near, far=far)

@@ -31,16 +31,17 @@ import numpy as np
 import torch
 
 from usplat_dr.data.types import model_inputs
-from usplat_dr.data.user_views import context_views, read_cameras
 from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz, quat_xyzw_to_matrix
 from usplat_dr.io.images import colorize_depth, to_uint8
 from usplat_dr.jobs.arguments import CHECKPOINT_HELP
 from usplat_dr.jobs.render_video import (
     DATASETS,
     add_image_shape_argument,
+    add_own_views_arguments,
     add_trust_argument,
-    image_shape,
+    check_own_views,
     one_example,
+    own_views,
 )
 from usplat_dr.model.ply import read_ply
 from usplat_dr.model.uniquesplat import VARIANTS
@@ -460,16 +461,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     data.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
                       "standard split)")
     data.add_argument("--scene", help="scene key (default: the first of the index)")
-    own = p.add_argument_group("your own context views (instead of --data)")
-    own.add_argument("--images", nargs="+", metavar="IMAGE",
-                     help="two (or more) context images, named as in --cameras")
-    own.add_argument("--cameras", help="their cameras: a COLMAP model folder (sparse/0) or a "
-                     "nerfstudio transforms.json")
-    own.add_argument("--near", type=float, help="near depth, scene units (default: from the "
-                     "COLMAP model's sparse points; required with a transforms.json)")
-    own.add_argument("--far", type=float, help="far depth (as --near)")
-    own.add_argument("--ignore-distortion", action="store_true",
-                     help="drop lens distortion coefficients (else they are an error)")
+    add_own_views_arguments(p)
     p.add_argument("--ply", help="a 3DGS PLY to look at instead of a model (rendered by our "
                    "rasteriser at --image-shape, default 256 256)")
     add_image_shape_argument(p)
@@ -515,11 +507,8 @@ def check_arguments(args: argparse.Namespace) -> None:
     if (args.data is None) == (args.images is None):
         raise ValueError("give --data (a dataset in the chunk format) or --images A B "
                          "--cameras FILE (your own images), one of them")
-    if args.images is not None and args.cameras is None:
-        raise ValueError("--images needs --cameras FILE (a COLMAP model folder or a "
-                         "transforms.json)")
-    if (args.near is None) != (args.far is None):
-        raise ValueError("give both --near and --far, or neither")
+    if args.images is not None:
+        check_own_views(args)
 
 
 def scene_from_args(args: argparse.Namespace):
@@ -534,12 +523,7 @@ def scene_from_args(args: argparse.Namespace):
         images, e, k = inputs.images[0], inputs.extrinsics[0], inputs.intrinsics[0]
         near, far = float(inputs.near[0].min()), float(inputs.far[0].max())
     else:
-        views = context_views(args.images, read_cameras(args.cameras, args.ignore_distortion),
-                              image_shape(args))
-        near, far = (args.near, args.far) if args.near is not None else (views.near, views.far)
-        if near is None:
-            raise ValueError(f"--cameras {args.cameras} has no sparse points to set near/far "
-                             f"from: give --near and --far (scene units)")
+        views, near, far = own_views(args)
         model = load(args.checkpoint, args.device, args.trust_checkpoint)
         images, e, k = views.images, views.extrinsics, views.intrinsics
     models = {label(model, args.checkpoint): model}
