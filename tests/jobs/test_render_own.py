@@ -1,5 +1,5 @@
 """``usplat render --images A B --cameras FILE``: a user's own images and camera file (COLMAP
-or transforms.json, from the synthetic user_scene of tests/data/test_importers.py) give novel views,
+or transforms.json, from the synthetic truth of tests/data/test_importers.py) give novel views,
 PNG frames, a video and a PLY with the shipped checkpoint, and the frames are what
 ``usplat_dr.load(...).predict(...)`` renders."""
 
