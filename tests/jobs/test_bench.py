@@ -57,3 +57,51 @@ def test_config_parsing_names_the_choices():
     assert BenchConfig.parse("paper:baseline").label == "paper (a)"
     with pytest.raises(ValueError, match="preset:variant"):
         BenchConfig.parse("huge:c")
+
+
+def test_measure_sweeps_gaussian_budgets_beside_pruning(tmp_path, caplog):
+    """Budget rows for each fraction and ranking in the same table as the pruning rows: K
+    Gaussians per view, a learned ranking only for a model with the head (whose untrained head
+    is the dither ranking: the same numbers), and the decisions and chart written."""
+    import csv
+    import dataclasses
+    import logging
+
+    from usplat_dr.data.synth import synthesize
+    from usplat_dr.jobs.bench import measure, write_results
+    from usplat_dr.model import UniqueSplat
+    from usplat_dr.training.checkpoints import load
+
+    caplog.set_level(logging.ERROR, logger="usplat_dr.model.uniquesplat")
+    root = tmp_path / "data"
+    synthesize(root, scenes=2, frames=10, resolution=(32, 32), seed=8, spp=4, stage="test",
+               previews=0, progress=False, kinds=("indoor",))
+    plain = load("tiny_baseline")
+    headed = UniqueSplat(dataclasses.replace(plain.cfg, importance=True)).eval()
+    headed.load_state_dict(plain.state_dict(), strict=False)
+    a, budget = BenchConfig("tiny", "baseline"), BenchConfig("tiny", "baseline", "budget")
+    rows = measure({a: plain, budget: headed}, root, 32, render_sizes=[32],
+                   prunes={"all": None}, progress=False, fractions=(0.1, 0.5))
+    by = {(r["config"], r["prune"]): r for r in rows}
+    assert budget.label == "tiny (a) budget"
+    assert sorted(p for c, p in by if c == "tiny (a)") == [
+        "all", "dither10%", "dither50%", "opacity10%", "opacity50%", "random10%", "random50%"]
+    assert sorted(p for c, p in by if c == "tiny (a) budget") == sorted(
+        ["learned10%", "learned50%"] + [p for c, p in by if c == "tiny (a)"])
+    for (c, p), r in by.items():
+        if p == "all":
+            assert r["rank_by"] is None and r["kept_fraction"] == 1.0
+            continue
+        k = round(r["budget_fraction"] * 2 * 32 * 32)
+        assert r["gaussians_per_view"] == k and r["rank_by"] in p and r["split"] == "standard"
+    # the untrained head is the dither ranking: the same model's (a) rows agree
+    for f in ("10%", "50%"):
+        learned, dither = by[("tiny (a) budget", f"learned{f}")], by[("tiny (a)", f"dither{f}")]
+        assert learned["psnr"] == dither["psnr"] and learned["ssim"] == dither["ssim"]
+    decision = write_results(rows, 32, tmp_path / "bench")
+    assert set(decision["budgets"]) >= {"learned10%", "opacity50%", "random10%"}
+    assert "learned10%" not in decision["pruning"]  # budgets are not pruning settings
+    with open(tmp_path / "bench" / "bench.csv") as f:
+        header = next(csv.reader(f))
+    assert {"budget_fraction", "rank_by", "split", "render_time_per_view_ms"} <= set(header)
+    assert (tmp_path / "bench" / "bench.png").stat().st_size > 0

@@ -69,6 +69,15 @@ def test_render_demo_writes_images(tmp_path):
     (["eval", "--checkpoint", "c", "--data", "d", "--device", "tpu"], "invalid choice: 'tpu'"),
     (["eval", "--checkpoint", "c", "--data", "d", "--precision", "fp16"],
      "invalid choice: 'fp16'"),
+    (["eval", "--checkpoint", "c", "--data", "d", "--gaussians", "0"],
+     "argument --gaussians: must be a count (an integer >= 1) or a fraction in (0, 1]"),
+    (["export-ply", "--checkpoint", "c", "--data", "d", "--gaussians", "1.5"],
+     "argument --gaussians: must be a count"),
+    (["render", "--checkpoint", "c", "--gaussians", "30%", "--rank-by", "size"],
+     "argument --rank-by: invalid choice: 'size'"),
+    (["bench", "--fractions", "0.1,2"], "--fractions: must be comma-separated fractions"),
+    (["bench", "--rank-by", "learned,size"], "--rank-by: unknown ['size']"),
+    (["bench", "--checkpoint", "tiny:c=x.pt"], "--checkpoint: must be PRESET:VARIANT:TAG=PATH"),
     (["no-such-command"], "invalid choice: 'no-such-command'"),
 ])
 def test_cli_rejects_bad_arguments_as_usage_errors(argv, message, capsys):
@@ -112,6 +121,8 @@ MISTAKES = [
      "scene 'nope' is not in"),
     (["export-ply", "--checkpoint", SHIPPED, "--data", "{data}", "--target", "9"],
      "--target must be in 0..1"),
+    (["export-ply", "--checkpoint", SHIPPED, "--data", "{data}", "--gaussians", "0.3",
+      "--rank-by", "learned"], "rank_by='learned' needs a model with an importance head"),
     (["train", "--config", "{tmp}/missing.yaml"],
      "config file '{tmp}/missing.yaml' does not exist"),
     (["train", "--config", "synthetic_tiny.yaml", "train.stepz=3"], "unknown key 'train.stepz'"),
@@ -144,6 +155,24 @@ def test_user_mistakes_end_in_one_line_and_status_2(argv, needle, one_scene, tmp
     assert len(err.splitlines()) == 1, err
 
 
+@pytest.mark.parametrize("gaussians, expected", [("100", 100), ("25%", 512)])
+def test_export_ply_writes_the_budgeted_gaussians(gaussians, expected, one_scene, tmp_path,
+                                                  caplog):
+    # 2 context views of 32x32 pixels: 2048 Gaussians per target; the shipped (a) has no
+    # importance head, so the budget keeps the most opaque, and says so
+    from usplat_dr.model.ply import read_ply
+
+    caplog.set_level(logging.WARNING, logger="usplat_dr.model.uniquesplat")
+    out = tmp_path / "g.ply"
+    assert main(["-q", "export-ply", "--checkpoint", SHIPPED, "--data", str(one_scene),
+                 "--image-shape", "32", "32", "--gaussians", gaussians, "--out", str(out)]) == 0
+    assert read_ply(out)["means"].shape == (expected, 3)
+    assert any("no importance head" in r.message for r in caplog.records)
+    # a standard 3DGS viewer's reader (plyfile, as the graphdeco viewers read it) agrees
+    plyfile = pytest.importorskip("plyfile")
+    assert plyfile.PlyData.read(str(out))["vertex"].count == expected
+
+
 def test_debug_shows_the_traceback(tmp_path):
     with pytest.raises(FileNotFoundError, match="missing.ckpt"):
         main(["--debug", "-q", "render", "--checkpoint", str(tmp_path / "missing.ckpt"),
@@ -170,7 +199,7 @@ def test_cli_commands_are_a_table_of_job_modules():
     "usplat_dr.model.encoder.primary", "usplat_dr.model.sh_rotation",
     "usplat_dr.model.hypernet.resnet", "usplat_dr.jobs.report", "usplat_dr.jobs.arguments",
     "usplat_dr.data.types", "usplat_dr.config", "usplat_dr.training.distributed",
-    "usplat_dr.training.checkpoints", "usplat_dr.training.cores"])
+    "usplat_dr.training.checkpoints", "usplat_dr.training.cores", "usplat_dr.model.budget"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module))
     assert result.attempted > 0 and result.failed == 0

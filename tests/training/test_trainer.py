@@ -353,13 +353,16 @@ def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, mo
 
 @pytest.mark.parametrize("clip", [1e-3, 1e6])  # clipping scales the gradients / leaves them
 def test_clip_gradients_equals_group_norms_then_clip_grad_norm(synth_root, tmp_path, clip):
-    # The one-pass clip against the two calls it replaces, on the full variant (all four
-    # gradient groups): the same norms and the same clipped gradients, compared exactly
-    # (the same per-parameter norms, stacked and reduced in the same order).
+    # The one-pass clip against the two calls it replaces, on the full variant with an
+    # importance head in a budgeted step (all five gradient groups): the same norms and the
+    # same clipped gradients, compared exactly (the same per-parameter norms, stacked and
+    # reduced in the same order).
     trainer = Trainer(config(synth_root, tmp_path / "c", 1, "model.variant=full",
-                             "threads=1", f"optimizer.gradient_clip={clip}"))
+                             "model.overrides.importance=true", "threads=1",
+                             f"optimizer.gradient_clip={clip}"))
     batch = trainer.batches.next()
-    out = trainer.model(*model_inputs(batch, trainer.device), global_step=0)
+    out = trainer.model(*model_inputs(batch, trainer.device), global_step=0, budget=0.3,
+                        budget_tau=0.5)
     trainer.loss(out, batch)[0].backward()
     grads = {n: p.grad.clone() for n, p in trainer.model.named_parameters()
              if p.grad is not None}

@@ -29,6 +29,8 @@ from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.synth.render import MATTE, SHINY
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import read_evaluation_index
+from usplat_dr.evaluation.allocation import COLUMNS as ALLOCATION_COLUMNS
+from usplat_dr.evaluation.allocation import allocation, kept_per_pixel, save_allocation
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.evaluation.provenance import keys_in_training
@@ -93,12 +95,17 @@ def peak_memory_gib(device: torch.device) -> float:
 def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
              lpips=None, device: torch.device | str = "cpu", images_per_split: int = 4,
              progress: bool = True, label: str = "", prune=None,
-             provenance: dict | None = None) -> dict:
+             provenance: dict | None = None, budget=None, rank_by: str | None = None) -> dict:
     """Evaluate ``model`` on each split (``indices``: split name -> evaluation index JSON) of
     ``dataset`` (a config section: name, roots, image_shape). Returns the summary.
 
     ``prune``: a ``PruneSettings`` applied per target before rendering, or ``None`` (the
     default: the protocol's numbers come from the exact model); the summary records it.
+    ``budget`` and ``rank_by``: keep that many Gaussians per target (a count or a fraction;
+    ``UniqueSplat.forward``), recorded in the summary as ``gaussians`` and ``rank_by``; then
+    where the budget goes (``evaluation.allocation``: the kept fraction on textured and plain
+    surfaces, near and far) is in ``per_scene.csv``, per split and scene kind in the summary
+    (``allocation``), and as images in ``allocation/<split>/``.
 
     ``provenance``: the checkpoint's provenance record; when it lists the training scenes
     (``train_keys``), scored scenes among them are a warning (one line: the count and the
@@ -120,7 +127,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         for i, example in enumerate(ds):
             batch = default_collate([example])
             t0 = time.perf_counter()
-            result = model(*model_inputs(batch, device), prune=prune)
+            result = model(*model_inputs(batch, device), prune=prune, budget=budget,
+                           rank_by=rank_by)
             times.append(time.perf_counter() - t0)
             gt = batch["target"]["image"][0].to(device)
             pred = result.color[0]
@@ -134,6 +142,13 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
                                     batch["target"]["depth"][0, j]) for j in range(len(gt))]
                 for key in ("abs_rel", "rmse", "delta1"):
                     row[key] = nan_mean([d[key] for d in dm])
+            if "kept_mask" in result.aux:  # where a budget went (evaluation.allocation)
+                v, h, w = batch["context"]["image"].shape[1], *gt.shape[-2:]
+                kept = kept_per_pixel(result.aux["kept_mask"].cpu(), v, h, w)
+                row.update(allocation(kept, batch["context"].get("material", [None])[0],
+                                      batch["context"].get("depth", [None])[0]))
+                if i < images_per_split:
+                    save_allocation(out / "allocation" / split, batch, kept)
             if "material" in batch["target"]:
                 material = batch["target"]["material"][0].to(device)
                 for key, codes in (("psnr_shiny", SHINY), ("psnr_matte", MATTE)):
@@ -154,6 +169,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
             metrics[key] = nan_mean(vals) if vals else None
         if lpips is None:
             metrics["lpips"] = "unavailable (no LPIPS weight files given)"
+        if any("kept" in r for r in scenes):
+            metrics["allocation"] = allocation_summary(scenes)
         summary["splits"][split] = {"scenes": len(scenes), **metrics,
                                     **index_coverage(index, [r["scene"] for r in scenes])}
         coverage = summary["splits"][split]
@@ -171,12 +188,17 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     summary.update(
         parameters=sum(p.numel() for p in model.parameters()),
         variant=model.cfg.variant, prune=prune.label() if prune is not None else "none",
+        gaussians="all" if budget is None else budget,
+        rank_by=None if budget is None else (rank_by or (
+            "learned" if getattr(model, "importance", None) is not None else "dither")),
         precision=getattr(model, "inference_precision", "float32"),
         image_shape=list(dataset.get("image_shape", ())),
         time_per_scene_s=statistics.median(steady) if steady else None,
         peak_memory_gib=peak_memory_gib(device), device=str(device))
     fields = ["split", "scene", "targets", "psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1",
               "psnr_shiny", "psnr_matte"]
+    if any("kept" in r for r in rows):
+        fields += list(ALLOCATION_COLUMNS)
     with atomic_open(out / "per_scene.csv", "w") as f:
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
@@ -184,6 +206,18 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     write_json(out / "summary.json", summary)
     log.info("evaluation summary: %s", json.dumps(summary["splits"]))
     return summary
+
+
+def allocation_summary(scenes: list[dict]) -> dict:
+    """The mean of each ``allocation`` column over the scenes, and per scene kind (the scene
+    name's prefix before ``_``: ``indoor``, ``outdoor``, ``object`` for synthetic sets)."""
+    def means(rows):
+        return {c: nan_mean([r[c] for r in rows if c in r]) for c in ALLOCATION_COLUMNS
+                if any(c in r for r in rows)}
+
+    kinds = sorted({r["scene"].split("_")[0] for r in scenes})
+    return {"all": means(scenes),
+            **{k: means([r for r in scenes if r["scene"].split("_")[0] == k]) for k in kinds}}
 
 
 def scene_keys(ds, scored: list[str]) -> set[str]:

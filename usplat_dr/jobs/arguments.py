@@ -38,6 +38,49 @@ positive_int = at_least(1)
 non_negative_int = at_least(0)
 
 
+def gaussians_argument(text: str) -> int | float:
+    """An argparse ``type`` for ``--gaussians``: a count (an integer >= 1) or a fraction in
+    (0, 1] of the model's Gaussians (``0.3`` or ``30%``); ``1`` is one Gaussian, ``1.0`` all.
+
+    Examples:
+        >>> gaussians_argument("5000"), gaussians_argument("0.3"), gaussians_argument("25%")
+        (5000, 0.3, 0.25)
+        >>> gaussians_argument("1.5")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        argparse.ArgumentTypeError: must be a count (an integer >= 1) or a fraction in ...
+    """
+    value: int | float | None = None
+    try:
+        if text.endswith("%"):
+            value = float(text[:-1]) / 100
+        elif text.strip().lstrip("+").isdigit():
+            value = int(text)
+        else:
+            value = float(text)
+    except ValueError:
+        value = None
+    ok = value is not None and (value >= 1 if isinstance(value, int) else 0 < value <= 1)
+    if not ok:
+        raise argparse.ArgumentTypeError(f"must be a count (an integer >= 1) or a fraction in "
+                                         f"(0, 1] (0.3 or 30%), got {text!r}")
+    return value
+
+
+def add_budget_arguments(p: argparse.ArgumentParser) -> None:
+    """``--gaussians`` and ``--rank-by``: a Gaussian budget per target view
+    (``UniqueSplat.forward``'s ``budget`` and ``rank_by``; docs/model.md)."""
+    p.add_argument("--gaussians", type=gaussians_argument, metavar="K",
+                   help="keep K Gaussians per target view: a count (5000) or a fraction of "
+                   "them (0.3 or 30%%), the most important by --rank-by (default: all)")
+    p.add_argument("--rank-by", choices=["learned", "dither", "opacity", "random"],
+                   help="how --gaussians ranks them: learned (the model's importance head, "
+                   "the kept ones adapted to the budget), dither (the head's untrained start: "
+                   "ordered dithering of opacity, the coverage rule), opacity or random "
+                   "(seeded), the controls (default: learned where the model has the head, "
+                   "else dither, with a warning)")
+
+
 def out_folder(text: str) -> str:
     """An argparse ``type``: a folder to write into (it may not exist yet); an existing file
     there is a usage error, not a traceback from ``mkdir``."""

@@ -7,18 +7,24 @@ them alike:
 
 - time per rendered novel view: (model time for the scene + its targets' pruning and
   rendering) / number of targets, i.e. the encoder's share amortised over the scene's targets;
-  wall time and process CPU time, median over scenes (the first scene warms kernels up);
+  wall time and process CPU time, median over scenes (the first scene warms kernels up); and
+  the rendering's share alone (pruning and rasterising, or rasterising a budget's K: what
+  falls with the Gaussians where the encoder's share does not);
 - peak memory of the model's forward pass (CPU: the rise of the process's peak RSS, reset per
   measurement through ``/proc/self/clear_refs``; CUDA: ``max_memory_allocated``);
 - parameters, Gaussians rendered per view, and accuracy: PSNR, SSIM, depth AbsRel.
 
 Axes: configurations (size preset x variant), Gaussian budgets
 (``usplat_dr.render.prune.PRUNES``: everything, exact culling, merging near-duplicates, keeping
-the most important fraction) at the training resolution, and render resolutions (default
-pruning). Writes ``bench.csv``, ``bench.png`` (accuracy against time per view with the Pareto
-front; accuracy against Gaussians rendered), ``bench.md`` (the table) and ``summary.json`` (the
-smallest configuration within 0.3 dB of the best, and which pruning settings cost less than
-0.05 dB everywhere).
+the most important fraction) at the training resolution, render resolutions (default
+pruning), and with ``--fractions`` the Gaussian budget chosen at inference
+(``UniqueSplat.forward(budget=...)``, model/budget.py) at each fraction, ranked by each of
+``--rank-by``: ``learned`` (models with an importance head), ``dither`` (its untrained start),
+``opacity`` and ``random``, the controls; ``--splits`` adds the stress splits (rows per
+split). Writes ``bench.csv``, ``bench.png`` (accuracy against time per view with the Pareto
+front; accuracy against Gaussians rendered, with its own front), ``bench.md`` (the table)
+and ``summary.json`` (the smallest configuration within 0.3 dB of the best, which pruning
+settings cost less than 0.05 dB everywhere, and each budget's worst PSNR change).
 """
 
 import argparse
@@ -43,10 +49,11 @@ from usplat_dr.io import atomic_open, write_json
 from usplat_dr.jobs.arguments import non_negative_int
 from usplat_dr.jobs.budgets import BUDGETS, ensure_data, training_config
 from usplat_dr.jobs.report import bench_chart, bench_table
+from usplat_dr.model.budget import RANKINGS
 from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS
 from usplat_dr.render.prune import PRUNES
 from usplat_dr.training import train
-from usplat_dr.training.checkpoints import BASE, load_models, shipped_checkpoints
+from usplat_dr.training.checkpoints import BASE, load, load_models, shipped_checkpoints
 
 log = logging.getLogger(__name__)
 
@@ -63,10 +70,11 @@ PRESET_WITHIN_DB = 0.3
 class BenchConfig:
     preset: str
     variant: str
+    tag: str = ""  # a model given by --checkpoint (e.g. "budget"), beside the trained ones
 
     @property
     def label(self) -> str:
-        return f"{self.preset} ({LETTERS[self.variant]})"
+        return f"{self.preset} ({LETTERS[self.variant]})" + (f" {self.tag}" if self.tag else "")
 
     def run_dir(self, out: Path) -> Path:
         # the demo's runs (tiny preset) are train_<variant>: shared
@@ -74,14 +82,14 @@ class BenchConfig:
         return out / f"train_{name}"
 
     @classmethod
-    def parse(cls, text: str) -> "BenchConfig":
+    def parse(cls, text: str, tag: str = "") -> "BenchConfig":
         """``preset:variant`` (variant: baseline/agnostic/full or a/b/c)."""
         preset, _, variant = text.partition(":")
         variant = {v: k for k, v in LETTERS.items()}.get(variant, variant)
         if preset not in PRESETS or variant not in LETTERS:
             raise ValueError(f"--configs: {text!r} is not preset:variant with preset in "
                              f"{sorted(PRESETS)} and variant in {sorted(LETTERS)} or a/b/c")
-        return cls(preset, variant)
+        return cls(preset, variant, tag)
 
 
 #: Variants (a)/(b)/(c) at the tiny size, and the size axis for the method (c): on 2 CPU cores
@@ -156,10 +164,14 @@ def train_configs(out: Path, budget: str, configs, seed: int = 0, jobs: int = 0)
     return runs
 
 
-def _examples(data: Path, model_size: int, render_sizes) -> list[dict]:
-    """Per scene of the standard split: the batch at the model's size and the targets at
-    every render size."""
-    index = synthetic_indices(data, ["standard"])["standard"]
+def _examples(data: Path, model_size: int, render_sizes, split: str = "standard"
+              ) -> list[dict]:
+    """Per scene of ``split``: the batch at the model's size and the targets at every render
+    size."""
+    indices = synthetic_indices(data, [split])
+    if split not in indices:
+        raise ValueError(f"--splits: {data} has no evaluation index for split {split!r}")
+    index = indices[split]
     sizes = sorted({model_size, *render_sizes})
     per_size = {}
     for s in sizes:
@@ -171,8 +183,18 @@ def _examples(data: Path, model_size: int, render_sizes) -> list[dict]:
             for i in range(len(per_size[model_size]))]
 
 
-#: What ``_time_scene`` appends per (configuration, pruning, render size) and scene.
-MEASURES = ("wall", "cpu", "psnr", "ssim", "abs_rel", "gaussians", "kept", "mem")
+#: What ``_time_scene`` appends per (configuration, split, setting, render size) and scene.
+MEASURES = ("wall", "cpu", "render", "psnr", "ssim", "abs_rel", "gaussians", "kept", "mem")
+
+
+def budget_label(fraction: float, rank_by: str) -> str:
+    """A Gaussian budget's row name: ``learned30%``, ``opacity10%``, ``random5%``."""
+    return f"{rank_by}{100 * fraction:g}%"
+
+
+def budget_settings(fractions, rank_by=RANKINGS) -> list[tuple[str, float, str]]:
+    """``(name, fraction, rank_by)`` of the Gaussian budgets to measure."""
+    return [(budget_label(f, r), f, r) for r in rank_by for f in fractions]
 
 
 def _settings(prunes: dict, model_size: int, render_sizes: list[int]) -> list[tuple]:
@@ -192,11 +214,11 @@ def _wait(device: torch.device) -> None:
 
 
 def _time_scene(config: BenchConfig, model, inputs, targets: dict, settings: list[tuple],
-                acc: dict, device: torch.device) -> None:
+                acc: dict, device: torch.device, split: str = "standard") -> None:
     """One scene and configuration: the model's forward timed once (wall, CPU, peak memory),
     then each ``(name, pruning, size)`` of ``settings`` rendered on ``targets[size]`` and timed;
     per setting, the time per view (the forward's share included) and the render's accuracy
-    (``_append_accuracy``) appended to ``acc[(config, name, size)]``."""
+    (``_append_accuracy``) appended to ``acc[(config, split, name, size)]``."""
     n = inputs.target_intrinsics.shape[1]
     model.eval()
     with PeakMemory(device) as mem:
@@ -211,10 +233,47 @@ def _time_scene(config: BenchConfig, model, inputs, targets: dict, settings: lis
         model.render_targets(out, *(tgt[k].to(device) for k in (
             "extrinsics", "intrinsics", "near", "far")), (size, size), prune=prune)
         _wait(device)
-        a = acc[(config, name, size)]
+        a = acc[(config, split, name, size)]
+        a["render"].append((time.perf_counter() - w0) / n)  # pruning and rasterising
         a["wall"].append((model_wall + time.perf_counter() - w0) / n)
         a["cpu"].append((model_cpu + time.process_time() - c0) / n)
         a["mem"].append(mem.gib)
+        _append_accuracy(a, out, tgt, n, total, device)
+
+
+def _time_budgets(config: BenchConfig, model, inputs, tgt: dict, size: int, budgets: list,
+                  acc: dict, device: torch.device, split: str = "standard") -> None:
+    """One scene and configuration, each Gaussian budget ``(name, fraction, rank_by)``: the
+    encoder timed once, then per budget the rest of the forward (heads, Gaussians, ranking,
+    selection, adaptation) and the render, timed; the time per view (the encoder's share
+    included), the peak memory (the larger of the encoder's and the rest's rise: the encoder's
+    output is held between them, so a lower bound of one whole prediction's) and the accuracy
+    appended to ``acc[(config, split, name, size)]``. ``kept`` is against the model's G."""
+    n = inputs.target_intrinsics.shape[1]
+    model.eval()
+    with PeakMemory(device) as enc_mem:
+        w0, c0 = time.perf_counter(), time.process_time()
+        encoding = model.encode(inputs.images, inputs.extrinsics, inputs.intrinsics,
+                                inputs.near, inputs.far)
+        _wait(device)
+        enc_wall, enc_cpu = time.perf_counter() - w0, time.process_time() - c0
+    total = inputs.images.shape[1] * size * size * model.cfg.primary.gaussians_per_pixel
+    cams = [tgt[k].to(device) for k in ("extrinsics", "intrinsics", "near", "far")]
+    for name, fraction, rank_by in budgets:
+        with PeakMemory(device) as mem:
+            w0, c0 = time.perf_counter(), time.process_time()
+            out = model(*inputs, render=False, encoding=encoding, budget=fraction,
+                        rank_by=rank_by)
+            _wait(device)
+            r0 = time.perf_counter()
+            model.render_targets(out, *cams, (size, size), prune=None)
+            _wait(device)
+        a = acc[(config, split, name, size)]
+        a["render"].append((time.perf_counter() - r0) / n)  # rasterising the K kept
+        a["wall"].append((enc_wall + time.perf_counter() - w0) / n)
+        a["cpu"].append((enc_cpu + time.process_time() - c0) / n)
+        peaks = [m for m in (enc_mem.gib, mem.gib) if m is not None]
+        a["mem"].append(max(peaks) if peaks else None)
         _append_accuracy(a, out, tgt, n, total, device)
 
 
@@ -232,55 +291,84 @@ def _append_accuracy(a: dict, out, tgt: dict, n: int, total: int, device: torch.
     a["kept"].append(rendered / total)
 
 
-def _aggregate(acc: dict, models: dict, scenes: int) -> list[dict]:
-    """A row per ``acc`` key ``(config, name, size)``, in its order: times as medians over
-    the scenes (the first, which warms kernels up, left out when there are more), the peak
-    memory's maximum, the other measures' means, and the PSNR change against rendering
-    everything ("all") for the same model and size (``None`` without an "all" row)."""
-    steady = slice(1, None) if scenes > 1 else slice(None)
+def _aggregate(acc: dict, models: dict, scenes: dict, budgets=()) -> list[dict]:
+    """A row per ``acc`` key ``(config, split, name, size)`` that was measured, in its order:
+    times as medians over the split's scenes (``scenes[split]``; the first, which warms
+    kernels up, left out when there are more), the peak memory's maximum, the other measures'
+    means, and the PSNR change against rendering everything ("all") for the same model, split
+    and size (``None`` without an "all" row). Budget rows (``budgets``' names) say their
+    fraction and ranking."""
+    budget_of = {name: (f, r) for name, f, r in budgets}
     rows = []
-    for (c, name, size), a in acc.items():
+    for (c, split, name, size), a in acc.items():
+        if not a["wall"]:  # (a learned budget for a model without the head)
+            continue
+        steady = slice(1, None) if scenes[split] > 1 else slice(None)
         mems = [m for m in a["mem"] if m is not None]
+        fraction, rank_by = budget_of.get(name, (None, None))
         rows.append({
             "config": c.label, "preset": c.preset, "variant": c.variant,
             "parameters": sum(p.numel() for p in models[c].parameters()),
-            "prune": name, "render_size": size,
+            "prune": name, "budget_fraction": fraction, "rank_by": rank_by,
+            "render_size": size, "split": split,
             "time_per_view_ms": 1000 * statistics.median(a["wall"][steady]),
             "cpu_time_per_view_ms": 1000 * statistics.median(a["cpu"][steady]),
+            "render_time_per_view_ms": 1000 * statistics.median(a["render"][steady]),
             "peak_memory_mib": 1024 * max(mems) if mems else None,
             "gaussians_per_view": statistics.mean(a["gaussians"]),
             "kept_fraction": statistics.mean(a["kept"]),
             "psnr": statistics.mean(a["psnr"]), "ssim": statistics.mean(a["ssim"]),
-            "abs_rel": nan_mean(a["abs_rel"]), "scenes": scenes})
+            "abs_rel": nan_mean(a["abs_rel"]), "scenes": scenes[split]})
     for r in rows:
         base = next((q for q in rows if q["config"] == r["config"] and q["prune"] == "all"
-                     and q["render_size"] == r["render_size"]), None)
+                     and q["render_size"] == r["render_size"] and q["split"] == r["split"]),
+                    None)
         r["psnr_change_db"] = None if base is None else r["psnr"] - base["psnr"]
     return rows
 
 
 @torch.no_grad()
 def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes=None,
-            device="cpu", progress: bool = True) -> list[dict]:
-    """One row per (configuration, pruning, render size); see the module docstring. Scene by
-    scene, each configuration in turn (``_time_scene``), then the rows (``_aggregate``)."""
+            device="cpu", progress: bool = True, fractions=(), rank_by=RANKINGS,
+            splits=("standard",)) -> list[dict]:
+    """One row per (configuration, split, pruning or budget, render size); see the module
+    docstring. Split by split, scene by scene, each configuration in turn (``_time_scene``,
+    ``_time_budgets`` at the model's size for ``fractions`` x ``rank_by``; a learned ranking
+    only for models with an importance head), then the rows (``_aggregate``)."""
     device = torch.device(device)
     render_sizes = sorted(set(render_sizes or (model_size // 2, model_size)))
     settings = _settings(PRUNES if prunes is None else prunes, model_size, render_sizes)
-    examples = _examples(data, model_size, render_sizes)
-    acc = {(c, name, s): {k: [] for k in MEASURES} for c in models for name, _, s in settings}
-    with tqdm(total=len(examples) * len(models), desc="bench", unit="scene",
-              dynamic_ncols=True, disable=not progress) as bar:
-        for ex in examples:
-            inputs = model_inputs(ex["batch"], device)
-            for c, model in models.items():
-                _time_scene(c, model, inputs, ex["targets"], settings, acc, device)
-                bar.update(1)
-    return _aggregate(acc, models, len(examples))
+    budgets = budget_settings(fractions, rank_by)
+    names = [(name, s) for name, _, s in settings] + [(name, model_size) for name, *_ in budgets]
+    acc = {(c, split, name, s): {k: [] for k in MEASURES}
+           for split in splits for c in models for name, s in names}
+    own = {c: [b for b in budgets if b[2] != "learned" or m.importance is not None]
+           for c, m in models.items()}
+    for c in models:
+        if len(own[c]) < len(budgets):
+            log.info("bench: %s has no importance head: no learned budget rows", c.label)
+    examples = {split: _examples(data, model_size, render_sizes, split) for split in splits}
+    with tqdm(total=sum(map(len, examples.values())) * len(models), desc="bench",
+              unit="scene", dynamic_ncols=True, disable=not progress) as bar:
+        for split, exs in examples.items():
+            for ex in exs:
+                inputs = model_inputs(ex["batch"], device)
+                for c, model in models.items():
+                    _time_scene(c, model, inputs, ex["targets"], settings, acc, device, split)
+                    if own[c]:
+                        _time_budgets(c, model, inputs, ex["targets"][model_size], model_size,
+                                      own[c], acc, device, split)
+                    bar.update(1)
+    return _aggregate(acc, models, {k: len(v) for k, v in examples.items()}, budgets)
 
 
 def choose(rows: list[dict], model_size: int) -> dict:
-    """The two decisions (see ``SAFE_PRUNE_DB``, ``PRESET_WITHIN_DB``) from the measured rows."""
+    """The two decisions (see ``SAFE_PRUNE_DB``, ``PRESET_WITHIN_DB``) from the measured rows
+    of the first split (the standard one), and each Gaussian budget's worst PSNR change."""
+    split = rows[0].get("split") if rows else None
+    rows = [r for r in rows if r.get("split") == split]
+    budget_rows = [r for r in rows if r.get("rank_by")]
+    rows = [r for r in rows if not r.get("rank_by")]
     base = [r for r in rows if r["render_size"] == model_size and r["prune"] == "all"]
     best = max(base, key=lambda r: r["psnr"])
     within = [r for r in base if r["psnr"] >= best["psnr"] - PRESET_WITHIN_DB]
@@ -294,14 +382,23 @@ def choose(rows: list[dict], model_size: int) -> dict:
                           r["kept_fraction"] for r in rows
                           if r["prune"] == name and r["render_size"] == model_size),
                       "safe": min(changes) > -SAFE_PRUNE_DB}
-    return {"best": best["config"], "best_psnr": best["psnr"],
-            "smallest_within_0.3dB": smallest["config"], "its_psnr": smallest["psnr"],
-            "its_parameters": smallest["parameters"], "pruning": safe}
+    decision = {"best": best["config"], "best_psnr": best["psnr"],
+                "smallest_within_0.3dB": smallest["config"], "its_psnr": smallest["psnr"],
+                "its_parameters": smallest["parameters"], "pruning": safe}
+    if budget_rows:  # the targets: <= 0.3 dB at 30%, <= 1.0 dB at 10% (docs/model.md)
+        decision["budgets"] = {
+            name: {"worst_psnr_change_db": min(r["psnr_change_db"] for r in group),
+                   "kept_fraction": statistics.mean(r["kept_fraction"] for r in group)}
+            for name in dict.fromkeys(r["prune"] for r in budget_rows)
+            for group in [[r for r in budget_rows if r["prune"] == name]]}
+    return decision
 
 
-FIELDS = ["config", "preset", "variant", "parameters", "prune", "render_size",
-          "time_per_view_ms", "cpu_time_per_view_ms", "peak_memory_mib", "gaussians_per_view",
-          "kept_fraction", "psnr", "psnr_change_db", "ssim", "abs_rel", "scenes"]
+FIELDS = ["config", "preset", "variant", "parameters", "prune", "budget_fraction", "rank_by",
+          "render_size", "split", "time_per_view_ms", "cpu_time_per_view_ms",
+          "render_time_per_view_ms", "peak_memory_mib",
+          "gaussians_per_view", "kept_fraction", "psnr", "psnr_change_db", "ssim", "abs_rel",
+          "scenes"]
 
 
 def write_results(rows: list[dict], model_size: int, out: Path) -> dict:
@@ -320,7 +417,8 @@ def write_results(rows: list[dict], model_size: int, out: Path) -> dict:
 
 def run_bench(out: str | Path = "outputs/demo", budget: str = "full", configs=DEFAULT_CONFIGS,
               render_sizes=None, prunes=None, device: str = "cpu", seed: int = 0,
-              jobs: int = 0) -> dict:
+              jobs: int = 0, fractions=(), rank_by=RANKINGS, splits=("standard",),
+              checkpoints: dict | None = None) -> dict:
     """Train what is missing, measure, write ``out/bench/``; returns the decisions."""
     if budget not in BUDGETS:
         raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {budget!r}")
@@ -331,7 +429,10 @@ def run_bench(out: str | Path = "outputs/demo", budget: str = "full", configs=DE
                          f"ground truth would be upsampled); use sizes <= {size}")
     runs = train_configs(out, budget, configs, seed, jobs)
     models = load_models(runs, device)
-    rows = measure(models, out / "data", size, render_sizes, prunes, device)
+    for config, path in (checkpoints or {}).items():  # --checkpoint PRESET:VARIANT:TAG=PATH
+        models[config] = load(path, device)
+    rows = measure(models, out / "data", size, render_sizes, prunes, device,
+                   fractions=fractions, rank_by=rank_by, splits=splits)
     decision = write_results(rows, size, out / "bench")
     print(bench_table(rows))
     print(json.dumps(decision, indent=1))
@@ -350,10 +451,58 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "cull+merge2px, keep50%%, keep25%%)")
     p.add_argument("--render-sizes", type=sizes_argument, default=None,
                    help="comma-separated render sizes <= the data's (default: half and full)")
+    p.add_argument("--fractions", type=fractions_argument, default=(),
+                   help="comma-separated fractions of the Gaussians for the budget chosen at "
+                   "inference, e.g. 0.05,0.1,0.3,0.5 (default: none)")
+    p.add_argument("--rank-by", type=rank_by_argument, default=RANKINGS,
+                   help="comma-separated rankings of the budget: learned (models with an "
+                   "importance head), dither, opacity, random (default: all four)")
+    p.add_argument("--splits", type=lambda t: tuple(t.split(",")), default=("standard",),
+                   help="comma-separated splits of the demo's data, e.g. standard,"
+                   "extrapolation (default: standard; the decisions use the first)")
+    p.add_argument("--checkpoint", dest="checkpoints", action="append", default=[],
+                   type=checkpoint_argument, metavar="PRESET:VARIANT:TAG=PATH",
+                   help="also measure this checkpoint (a file or a shipped name), labelled "
+                   "e.g. 'tiny (c) budget' for tiny:c:budget=...; repeatable")
     p.add_argument("--quick", action="store_true", help="the demo's quick budget (CI)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--jobs", type=non_negative_int, default=0,
                    help="Mitsuba worker processes (0: auto)")
+
+
+def fractions_argument(text: str) -> tuple[float, ...]:
+    """``--fractions``: comma-separated fractions in (0, 1]."""
+    try:
+        values = tuple(float(t) for t in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or not all(0 < f <= 1 for f in values):
+        raise argparse.ArgumentTypeError(f"must be comma-separated fractions in (0, 1], got "
+                                         f"{text!r}")
+    return values
+
+
+def rank_by_argument(text: str) -> tuple[str, ...]:
+    """``--rank-by``: comma-separated names of ``RANKINGS``."""
+    unknown = sorted(set(text.split(",")) - set(RANKINGS))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown {unknown}; choose from {list(RANKINGS)}")
+    return tuple(text.split(","))
+
+
+def checkpoint_argument(text: str) -> tuple[BenchConfig, str]:
+    """``--checkpoint``: ``preset:variant:tag=path``."""
+    spec, sep, path = text.partition("=")
+    preset, _, rest = spec.partition(":")
+    variant, _, tag = rest.partition(":")
+    if not sep or not path or not tag:
+        raise argparse.ArgumentTypeError(f"must be PRESET:VARIANT:TAG=PATH (e.g. "
+                                         f"tiny:c:budget=outputs/tiny_full_budget/checkpoints/"
+                                         f"last.ckpt), got {text!r}")
+    try:
+        return BenchConfig.parse(f"{preset}:{variant}", tag), path
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from e
 
 
 def configs_argument(text: str) -> tuple[BenchConfig, ...]:
@@ -385,5 +534,6 @@ def sizes_argument(text: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     run_bench(args.out, "quick" if args.quick else "full", args.configs, args.render_sizes,
-              args.prunes, device=args.device, jobs=args.jobs)
+              args.prunes, device=args.device, jobs=args.jobs, fractions=args.fractions,
+              rank_by=args.rank_by, splits=args.splits, checkpoints=dict(args.checkpoints))
     return 0

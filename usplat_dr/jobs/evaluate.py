@@ -10,7 +10,7 @@ import torch
 from usplat_dr import portable
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
-from usplat_dr.jobs.arguments import CHECKPOINT_HELP, out_folder
+from usplat_dr.jobs.arguments import CHECKPOINT_HELP, add_budget_arguments, out_folder
 from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
 from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import checkpoint_provenance, load
@@ -33,6 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "+ merging near-duplicates, within 0.05 dB): fewer Gaussians, but on CPU "
                    "slower at every size measured (train/bench/README.md, \"Pruning that pays\"); "
                    "off by default")
+    add_budget_arguments(p)
     p.add_argument("--precision", default="float32", choices=["float32", "bfloat16"],
                    help="the networks' inference precision (bfloat16: torch autocast, faster "
                         "on CPUs with AVX-512-BF16 or AMX; geometry and rendering stay "
@@ -87,6 +88,6 @@ def run(args: argparse.Namespace) -> int:
     record = checkpoint_provenance(args.checkpoint, args.trust_checkpoint)
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
                        prune=PruneSettings(merge=True) if args.prune else None,
-                       provenance=record)
+                       provenance=record, budget=args.gaussians, rank_by=args.rank_by)
     print(json.dumps(summary, indent=1))
     return 0

@@ -1,5 +1,5 @@
 """``usplat export-ply``: the Gaussians predicted for one target view, as a standard 3DGS
-PLY."""
+PLY (``--gaussians K``: the K the budget keeps)."""
 
 import argparse
 
@@ -21,12 +21,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     model, batch = one_example(args)
     with torch.no_grad():
-        out = model(*model_inputs(batch, torch.device(args.device)), render=False)
+        out = model(*model_inputs(batch, torch.device(args.device)), render=False,
+                    budget=args.gaussians, rank_by=args.rank_by)
     n = out.num_targets
     if not 0 <= args.target < n:
         raise ValueError(f"--target must be in 0..{n - 1} (the scene's target views), got "
                          f"{args.target}")
     path = write_ply(args.out, out.target(0, args.target), min_opacity=args.min_opacity)
+    kept = "" if args.gaussians is None else f" ({int(out.aux['kept'][0, args.target])} kept)"
     print(f"wrote {path}: the Gaussians predicted for target {args.target} of "
-          f"{batch['scene'][0]}")
+          f"{batch['scene'][0]}{kept}")
     return 0

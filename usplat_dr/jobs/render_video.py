@@ -26,7 +26,13 @@ from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.camera_paths import camera_path
 from usplat_dr.io.images import colorize_depth, save_png
 from usplat_dr.io.video import write_video
-from usplat_dr.jobs.arguments import CHECKPOINT_HELP, at_least, out_folder, positive_int
+from usplat_dr.jobs.arguments import (
+    CHECKPOINT_HELP,
+    add_budget_arguments,
+    at_least,
+    out_folder,
+    positive_int,
+)
 from usplat_dr.model.ply import write_ply
 from usplat_dr.training.checkpoints import load, training_image_shape
 
@@ -43,6 +49,7 @@ def add_example_arguments(p: argparse.ArgumentParser, data_required: bool = True
     p.add_argument("--scene", help="scene key (default: the first of the index)")
     add_image_shape_argument(p)
     add_trust_argument(p)
+    add_budget_arguments(p)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
 
 
@@ -131,7 +138,8 @@ def run(args: argparse.Namespace) -> int:
     if args.data is not None:
         model, batch = one_example(args)
         colors, depths = render_path(model, batch, args.frames, device=args.device,
-                                     path=args.path, image_shape=image_shape(args))
+                                     path=args.path, image_shape=image_shape(args),
+                                     budget=args.gaussians, rank_by=args.rank_by)
     else:
         model = load(args.checkpoint, args.device, args.trust_checkpoint)
         pred = predict_own_views(model, args)
@@ -175,19 +183,21 @@ def predict_own_views(model, args: argparse.Namespace):
                      tuple(views.images.shape[-2:]))
     return model.predict(views.images, intrinsics=views.intrinsics,
                          extrinsics=views.extrinsics, target_intrinsics=tk,
-                         target_extrinsics=te, near=near, far=far)
+                         target_extrinsics=te, near=near, far=far,
+                         budget=args.gaussians, rank_by=args.rank_by)
 
 
 def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,
                 device: torch.device | str = "cpu", path: str = "orbit",
-                image_shape: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                image_shape: tuple[int, int] | None = None, budget=None,
+                rank_by: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Colour [F, H, W, 3] and alpha-normalised depth [F, H, W] of an example's scene along
-    ``--path`` (``targets``)."""
+    ``--path`` (``targets``), with ``budget`` Gaussians per frame (``None``: all)."""
     inputs = model_inputs(batch, torch.device(device))
     shape = image_shape or tuple(inputs.images.shape[-2:])
     te, tk = targets(path, inputs.extrinsics[0], inputs.intrinsics[0], frames, shape)
     pred = model.predict(inputs.images[0], intrinsics=inputs.intrinsics[0],
                          extrinsics=inputs.extrinsics[0], target_intrinsics=tk,
                          target_extrinsics=te, near=inputs.near[0], far=inputs.far[0],
-                         chunk=chunk)
+                         chunk=chunk, budget=budget, rank_by=rank_by)
     return (pred.color.permute(0, 2, 3, 1).cpu().numpy(), pred.depth.cpu().numpy())

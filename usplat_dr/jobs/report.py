@@ -84,14 +84,15 @@ class DemoResults:
     provenance: dict  # the machine, libraries and data (evaluation.provenance)
     manifest: dict  # shipped checkpoint name -> its checkpoints/manifest.json entry
     registered: dict | None = None  # the shipped multi-seed verdict (checkpoints/verdict.json)
+    allocation: dict | None = None  # evaluate()'s summary of (c) under a Gaussian budget
 
 
 def write_report(results: DemoResults) -> Path:
     """``report.md`` in ``results.out``, from the results of the demo's steps and the files
     they wrote (renders, ``bench_demo/bench.md``, ``bench/bench.md``): a section each."""
     sections = (intro_lines, shipped_lines, verdict_lines, split_lines, worst_case_lines,
-                fine_tuning_lines, speed_lines, novel_view_lines, provenance_lines,
-                wall_time_lines)
+                fine_tuning_lines, speed_lines, allocation_lines, novel_view_lines,
+                provenance_lines, wall_time_lines)
     lines = [line for section in sections for line in section(results)]
     path = results.out / "report.md"
     with atomic_open(path, "w") as f:
@@ -210,10 +211,42 @@ def speed_lines(r: DemoResults) -> list[str]:
     for name, p in sorted(r.bench["pruning"].items()):
         lines.append(f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | "
                      f"{p['kept_fraction']:.2f} | {'yes' if p['safe'] else 'no'} |")
+    if r.bench.get("budgets"):
+        lines += ["", ("Gaussian budgets chosen at inference (docs/model.md, \"A Gaussian budget "
+                       "chosen at inference\"): worst PSNR change over the models against "
+                       "all Gaussians, mean fraction kept."), "",
+                  "| budget | worst PSNR change | kept |", "|---|---|---|"]
+        lines += [f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | {p['kept_fraction']:.2f} |"
+                  for name, p in r.bench["budgets"].items()]
     full_bench = r.out / "bench" / "bench.md"
     if full_bench.is_file():
         lines += ["", "### Full `usplat bench` (all presets)", "",
                   "![usplat bench](bench/bench.png)", "", full_bench.read_text().rstrip()]
+    return [*lines, ""]
+
+
+def allocation_lines(r: DemoResults) -> list[str]:
+    """Where a Gaussian budget goes in (c): the kept fraction by material and depth, per scene
+    kind, and the first scenes' maps (``evaluation.allocation``); nothing without it."""
+    if r.allocation is None:
+        return []
+    split = r.allocation["splits"]["standard"]
+    lines = ["## Where the budget goes", "",
+             (f"(c) keeping {r.allocation['gaussians']} of its Gaussians "
+              f"(`rank_by={r.allocation['rank_by']}`) on the standard split: "
+              f"{split['psnr']:.2f} dB. The fraction kept on textured and plain "
+              f"(textureless) surfaces and on the near and far half of the context depths:"),
+             "", "| scenes | kept | textured | plain | near | far |", "|---|---|---|---|---|---|"]
+    for kind, a in split.get("allocation", {}).items():
+        cells = " | ".join(f"{a.get(c, float('nan')):.3f}" for c in (
+            "kept", "kept_textured", "kept_plain", "kept_near", "kept_far"))
+        lines.append(f"| {kind} | {cells} |")
+    lines += ["", ("Each row: a context view, the fraction of targets that kept its pixels' "
+                   "Gaussians (white: all), its material (orange textured, grey plain, blue "
+                   "glossy) and depth.")]
+    folder = r.out / "eval_budget_full" / "allocation" / "standard"
+    for path in sorted(folder.glob("*.png"))[:2]:
+        lines += ["", f"![{path.stem}]({path.relative_to(r.out)})"]
     return [*lines, ""]
 
 
@@ -262,18 +295,29 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
     return sorted(front, key=lambda i: points[i][0])
 
 
+#: Markers of ``bench_chart``: pruning settings by name, Gaussian budgets by ranking.
+PRUNE_MARKERS = {"all": "o", "cull": "s", "cull+merge1px": "D", "cull+merge2px": "d",
+                 "keep50%": "v", "keep25%": "^"}
+RANK_MARKERS = {"learned": "*", "dither": "p", "opacity": "P", "random": "X"}
+
+
+def _marker(r: dict) -> str:
+    return RANK_MARKERS.get(r.get("rank_by") or "", PRUNE_MARKERS.get(r["prune"], "o"))
+
+
 def bench_chart(rows: list[dict], model_size: int, path: Path) -> Path:
-    """``usplat bench``'s chart: accuracy against time per view (with the Pareto front) and
-    against Gaussians rendered per view."""
+    """``usplat bench``'s chart, on the first split's rows (the standard one): accuracy against
+    time per view and against Gaussians rendered per view, each with its Pareto front;
+    pruning settings and Gaussian budgets (by ranking) as markers."""
     matplotlib.use("Agg")  # files only, no display
+    split = rows[0].get("split") if rows else None
+    rows = [r for r in rows if r.get("split") == split]
     configs = list(dict.fromkeys(r["config"] for r in rows))
     colours = {c: plt.cm.tab10(i % 10) for i, c in enumerate(configs)}
-    markers = {"all": "o", "cull": "s", "cull+merge1px": "D", "cull+merge2px": "d",
-               "keep50%": "v", "keep25%": "^"}
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4.6))
     main = [r for r in rows if r["render_size"] == model_size]
     for r in main:
-        kw = dict(color=colours[r["config"]], marker=markers.get(r["prune"], "o"), s=36,
+        kw = dict(color=colours[r["config"]], marker=_marker(r), s=36,
                   edgecolors="k", linewidths=0.4, zorder=3)
         ax0.scatter(r["time_per_view_ms"], r["psnr"], **kw)
         ax1.scatter(r["gaussians_per_view"], r["psnr"], **kw)
@@ -283,17 +327,21 @@ def bench_chart(rows: list[dict], model_size: int, path: Path) -> Path:
                         marker="o", s=36, facecolors="none", zorder=2)
             ax0.annotate(f"{r['render_size']}px", (r["time_per_view_ms"], r["psnr"]),
                          fontsize=7, xytext=(3, -8), textcoords="offset points")
-    front = pareto([(r["time_per_view_ms"], r["psnr"]) for r in main])
-    ax0.plot([main[i]["time_per_view_ms"] for i in front], [main[i]["psnr"] for i in front],
-             "k--", linewidth=1, label="Pareto front", zorder=1)
-    for i in front:
-        ax0.annotate(f"{main[i]['config']}, {main[i]['prune']}",
-                     (main[i]["time_per_view_ms"], main[i]["psnr"]), fontsize=7,
-                     xytext=(4, 4), textcoords="offset points")
+    for ax, key in ((ax0, "time_per_view_ms"), (ax1, "gaussians_per_view")):
+        front = pareto([(r[key], r["psnr"]) for r in main])
+        ax.plot([main[i][key] for i in front], [main[i]["psnr"] for i in front],
+                "k--", linewidth=1, label="Pareto front", zorder=1)
+        for i in front:
+            ax.annotate(f"{main[i]['config']}, {main[i]['prune']}",
+                        (main[i][key], main[i]["psnr"]), fontsize=7,
+                        xytext=(4, 4), textcoords="offset points")
     handles = [Line2D([], [], color=colours[c], marker="o", linestyle="", label=c)
                for c in configs]
     handles += [Line2D([], [], color="grey", marker=m, linestyle="", label=p)
-                for p, m in markers.items() if any(r["prune"] == p for r in main)]
+                for p, m in PRUNE_MARKERS.items()
+                if any(r["prune"] == p and not r.get("rank_by") for r in main)]
+    handles += [Line2D([], [], color="grey", marker=m, linestyle="", label=f"budget: {p}")
+                for p, m in RANK_MARKERS.items() if any(r.get("rank_by") == p for r in main)]
     handles += [Line2D([], [], color="k", linestyle="--", label="Pareto front"),
                 Line2D([], [], color="grey", marker="o", markerfacecolor="none",
                        linestyle="", label="other render size")]
@@ -317,14 +365,15 @@ def bench_table(rows: list[dict]) -> str:
     def fmt(v, spec):
         return "-" if v is None else format(v, spec)
 
-    lines = [("| config | params | pruning | size | ms/view | CPU ms/view | peak MiB | "
-              "Gaussians/view | kept | PSNR | dPSNR | SSIM | AbsRel |"),
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [("| config | params | pruning | size | ms/view | CPU ms/view | render ms/view | "
+              "peak MiB | Gaussians/view | kept | PSNR | dPSNR | SSIM | AbsRel |"),
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
             f"| {r['config']} | {r['parameters'] / 1e6:.2f}M | {r['prune']} | "
             f"{r['render_size']} | {r['time_per_view_ms']:.1f} | "
-            f"{r['cpu_time_per_view_ms']:.1f} | {fmt(r['peak_memory_mib'], '.0f')} | "
+            f"{r['cpu_time_per_view_ms']:.1f} | {fmt(r.get('render_time_per_view_ms'), '.1f')} | "
+            f"{fmt(r['peak_memory_mib'], '.0f')} | "
             f"{r['gaussians_per_view']:.0f} | {r['kept_fraction']:.2f} | {r['psnr']:.2f} | "
             f"{fmt(r['psnr_change_db'], '+.3f')} | {r['ssim']:.3f} | {r['abs_rel']:.3f} |")
     return "\n".join(lines)

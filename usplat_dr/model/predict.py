@@ -98,9 +98,10 @@ def _check_normalised(name: str, k: Tensor) -> None:
 @torch.no_grad()
 def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
                   target_extrinsics, near=DEFAULT_NEAR, far=DEFAULT_FAR,
-                  chunk: int = 8) -> Prediction:
+                  chunk: int = 8, budget=None, rank_by: str | None = None) -> Prediction:
     """Predict and render ``target_*`` cameras from the context ``images`` with ``model`` (a
-    ``UniqueSplat``), in its evaluation mode, ``chunk`` targets per forward pass. See
+    ``UniqueSplat``), in its evaluation mode, ``chunk`` targets per forward pass, keeping
+    ``budget`` Gaussians per target ranked by ``rank_by`` (``None``: all). See
     ``UniqueSplat.predict``."""
     if not isinstance(chunk, int) or chunk < 1:
         raise ValueError(f"chunk must be an int >= 1, got {chunk!r}")
@@ -135,7 +136,8 @@ def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
             out = model(**context, target_intrinsics=tk[None, s:s + n].to(device),
                         target_extrinsics=te[None, s:s + n].to(device),
                         target_near=near_t.min().expand(1, n).to(device),
-                        target_far=far_t.max().expand(1, n).to(device))
+                        target_far=far_t.max().expand(1, n).to(device), budget=budget,
+                        rank_by=rank_by)
             gaussians += [out.target(0, i) for i in range(n)]
             colors.append(out.color[0].clamp(0, 1))
             alphas.append(out.alpha[0])

@@ -17,6 +17,13 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.model.budget import (
+    RANKINGS,
+    ImportanceHead,
+    apply_budget,
+    budget_count,
+    dither_offsets,
+)
 from usplat_dr.model.checkpoint import check_state_dict, extract_state_dict, read_checkpoint
 from usplat_dr.model.decoder import DecoderSplatting
 from usplat_dr.model.encoder.depth_predictor import DepthOutputs
@@ -92,11 +99,17 @@ class UniqueSplatCfg:
     proj_stride: int = 8  # target grid of Proj = image size / proj_stride
     proj_temperature: float = 10.0  # initial softmax temperature over the samples
     phi_channels: tuple[int, ...] = (128, 256, 256, 256)
+    # A Gaussian budget chosen at inference (model/budget.py, docs/model.md): an importance
+    # head on the Gaussian head's input (one logit per Gaussian) and the adaptation of the kept
+    # Gaussians to the budget. Off: the model, its checkpoints and MVSplat's load as before.
+    importance: bool = False
+    importance_hidden: int = 32  # width of the importance head and of the adaptation MLP
 
     def __post_init__(self):
         check_bounds(self, {"embed_dim": 8192, "hyper_hidden": 4096, "delta_rank": 4096,
                             "resnet_stages": 4, "feature_dim": 2048, "proj_samples": 2048,
-                            "proj_stride": 256, "phi_channels": 4096})
+                            "proj_stride": 256, "phi_channels": 4096,
+                            "importance_hidden": 4096})
         if self.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {tuple(VARIANTS)}, got {self.variant!r}")
         bad = [t for t in self.target_layers if t not in INJECTABLE]
@@ -107,7 +120,8 @@ class UniqueSplatCfg:
         if not self.specific_layers or not set(self.specific_layers) <= set(self.target_layers):
             raise ValueError(f"specific_layers must be a non-empty subset of target_layers "
                              f"{self.target_layers}, got {self.specific_layers}")
-        for name in ("embed_dim", "hyper_hidden", "feature_dim", "proj_samples", "proj_stride"):
+        for name in ("embed_dim", "hyper_hidden", "feature_dim", "proj_samples", "proj_stride",
+                     "importance_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.delta_init_std >= 0:
@@ -160,7 +174,10 @@ class UniqueSplatOutput:
     ``color`` [B, N, 3, H, W], ``alpha`` and ``depth`` [B, N, H, W] when rendered.
     ``aux``: ``embedding`` e_s [B, N, D] and Proj's ``correlation`` / ``weights`` (full
     variant); ``context_depths`` and ``context_coarse_depths`` [B, V, H, W] (the context
-    views' predicted depth after and before refinement)."""
+    views' predicted depth after and before refinement); ``kept`` [B, N] (the Gaussians each
+    target kept: all of them unless a budget was given; ``rendered`` counts what pruning
+    left) and, under a budget, ``importance`` and ``kept_mask`` [B*N, G] (the ranking scores
+    and the top-K over the model's G Gaussians, in their order: view, pixel, Gaussian)."""
 
     gaussians: Gaussians
     num_targets: int
@@ -224,6 +241,13 @@ class UniqueSplat(nn.Module):
         #: 1.82 s at one thread and moved the tiny checkpoint's held-out PSNR by +0.013 dB
         #: (train/bench/README.md, "bfloat16 inference").
         self.inference_precision = "float32"
+        #: The importance head and budget adaptation (``cfg.importance``; model/budget.py).
+        self.importance = None
+        if cfg.importance:
+            p = cfg.primary
+            self.importance = ImportanceHead(p.depth_unet_feat_dim + 3 + p.d_feature,
+                                             cfg.importance_hidden, p.gaussians_per_pixel)
+        self._warned_no_head = False
         self.agnostic = self.specific = None
         if cfg.variant == "baseline":
             return
@@ -335,8 +359,10 @@ class UniqueSplat(nn.Module):
                 target_intrinsics: Float[Tensor, "b n 3 3"], target_near: Float[Tensor, "b n"],
                 target_far: Float[Tensor, "b n"], render: bool = True, global_step: int = 0,
                 background_color: Tensor | None = None, settings=None, prune="auto", *,
-                encoding: DepthOutputs | None = None, delta_w: dict | None = None
-                ) -> UniqueSplatOutput:
+                encoding: DepthOutputs | None = None, delta_w: dict | None = None,
+                budget: float | int | None = None,  # noqa: PYI041 (beartype: int is no float)
+                rank_by: str | None = None, budget_tau: float | None = None,
+                budget_seed: int = 0) -> UniqueSplatOutput:
         """Gaussians per target view, and their renders (``render=True``) through the
         Dr.Jit rasteriser with MVSplat's SH basis (``settings``: a ``RasterSettings``).
 
@@ -347,11 +373,25 @@ class UniqueSplat(nn.Module):
         For studies that hold the primary network fixed: ``encoding``, what ``encode`` returned
         for these context views, skips the encoder (its result must not need a gradient);
         ``delta_w`` (layer name -> ``LayerDelta`` for B*N targets, layers of ``INJECTABLE``)
-        replaces the view-specific branch's Delta W, in any variant."""
+        replaces the view-specific branch's Delta W, in any variant.
+
+        ``budget`` (model/budget.py): keep K Gaussians per target, K a count (an int) or a
+        fraction in (0, 1] of them, ranked by ``rank_by``: ``"learned"`` (the importance head,
+        with the kept Gaussians adapted to the budget), ``"dither"`` (what the untrained head
+        does), ``"opacity"`` or ``"random"`` (seeded with ``budget_seed``), the controls;
+        ``None``: learned where the model has the head, else dither (with a warning).
+        ``budget_tau`` > 0: the relaxed mask of training instead of the hard top-K.
+        ``out.aux["kept"]`` [B, N]: the Gaussians each target kept; with a budget also
+        ``importance`` (the ranking scores) and ``kept_mask`` [B*N, G]. ``budget=None`` (or a
+        fraction of 1) leaves every output as without it, bit for bit."""
         if isinstance(prune, str) and prune != "auto":
             raise ValueError(f"prune must be a PruneSettings, None or 'auto', got {prune!r}")
         if prune == "auto":
             prune = None if self.training else self.inference_prune
+        if budget is not None:  # before any network runs
+            budget_count(budget, 1)
+        if rank_by is not None and rank_by not in RANKINGS:
+            raise ValueError(f"rank_by must be one of {RANKINGS} or None, got {rank_by!r}")
         b, v, _, h, w = images.shape
         n = self.check_targets(b, target_extrinsics, target_intrinsics, target_near, target_far)
         with self._autocast(images.device):
@@ -370,6 +410,11 @@ class UniqueSplat(nn.Module):
             depth_out = self._run_heads(depth, weights, deltas, near, far, v, b, nb)
         gaussians = self._gaussians_per_target(depth_out, extrinsics, intrinsics, (h, w),
                                                global_step, b, n, nb)
+        kept = len(gaussians)
+        if budget is not None:
+            gaussians, kept = self._budgeted(gaussians, depth, aux, images.device, v, b, n,
+                                             budget, rank_by, budget_tau, budget_seed)
+        aux["kept"] = torch.full((b, n), kept, device=images.device)
         # The context views' depth maps [B, V, H, W] (the first target's where they differ
         # per target; MVSplat's depth: the distance along the pixel's unit ray, not z): what
         # a depth loss supervises. ``context_coarse_depths`` is the
@@ -384,6 +429,49 @@ class UniqueSplat(nn.Module):
             self.render_targets(out, target_extrinsics, target_intrinsics, target_near,
                                 target_far, (h, w), background_color, settings, prune)
         return out
+
+    def _budgeted(self, gaussians: Gaussians, depth: DepthOutputs, aux: dict,
+                  device: torch.device, v: int, b: int, n: int, budget, rank_by: str | None,
+                  tau: float | None, seed: int) -> tuple[Gaussians, int]:
+        """``forward``'s budget: the kept Gaussians and K (model/budget.py); ``aux`` gets the
+        scores and the kept mask (and, while training, the unbudgeted Gaussians)."""
+        if rank_by is None:
+            rank_by = "learned" if self.importance is not None else "dither"
+            # (once per model: a command's every forward would repeat it)
+            if self.importance is None and not self._warned_no_head:
+                self._warned_no_head = True
+                log.warning("this model has no importance head: the Gaussian budget keeps "
+                            "Gaussians by ordered dithering of their opacity and rescales them "
+                            "by the coverage rule (rank_by='dither', the learned ranking's "
+                            "untrained start); fine-tune the head with usplat train --config "
+                            "synthetic_tiny_budget.yaml (docs/model.md)")
+        if rank_by == "learned" and self.importance is None:
+            raise ValueError("rank_by='learned' needs a model with an importance head "
+                             "(UniqueSplatCfg.importance=True, fine-tuned by usplat train "
+                             "--config synthetic_tiny_budget.yaml); use rank_by='dither', "
+                             "'opacity' or 'random'")
+        if budget_count(budget, len(gaussians)) >= len(gaussians):
+            return gaussians, len(gaussians)  # everything kept: nothing computed, nothing changed
+        logits = features = dither = None
+        if rank_by == "learned":
+            with self._autocast(device):
+                logits, features = self.importance(depth.head_input, v, b)  # [B, G], [B, G, F]
+            # one density per scene, repeated for its targets: [B*N, G]
+            logits = logits.repeat_interleave(n, 0)
+            features = features.repeat_interleave(n, 0)
+        h, w = depth.disp_full.shape[-2:]
+        layout = (v, h, w, self.cfg.primary.gaussians_per_pixel)
+        if rank_by in ("learned", "dither"):
+            dither = dither_offsets(*layout, device=device)
+        chosen = apply_budget(gaussians, budget, rank_by, logits, features, self.importance,
+                              dither, layout, tau, seed)
+        if chosen.scores is not None:
+            aux.update(importance=chosen.scores, kept_mask=chosen.kept_mask)
+            if chosen.mask is not None:
+                aux["budget_mask"] = chosen.mask
+            if self.training:  # for a loss on the full render beside the budgeted one
+                aux["unbudgeted"] = gaussians
+        return chosen.gaussians, chosen.kept
 
     def encode(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
                intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
@@ -515,7 +603,9 @@ class UniqueSplat(nn.Module):
         out.aux["rendered"] = r.rendered
 
     def predict(self, images, *, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
-                near=DEFAULT_NEAR, far=DEFAULT_FAR, chunk: int = 8) -> Prediction:
+                near=DEFAULT_NEAR, far=DEFAULT_FAR, chunk: int = 8,
+                budget: float | int | None = None,  # noqa: PYI041 (beartype: int is no float)
+                rank_by: str | None = None) -> Prediction:
         """Novel views from a user's own images: the Gaussians, colour and depth of each
         target camera (a ``Prediction``), predicted in evaluation mode without gradients.
 
@@ -525,11 +615,13 @@ class UniqueSplat(nn.Module):
         ``extrinsics`` [V, 4, 4] camera-to-world, OpenCV axes; ``target_*`` the same for N
         targets (one camera may come without its leading axis); ``near``/``far`` the depth
         range in scene units (a number, or one per context view; the default is MVSplat's
-        RE10K range); ``chunk`` targets per forward pass. Cameras are keyword-only."""
+        RE10K range); ``chunk`` targets per forward pass. Cameras are keyword-only.
+        ``budget``: keep K Gaussians per target (a count, or a fraction in (0, 1]) ranked by
+        ``rank_by``, as in ``forward``; each ``gaussians[n]`` then holds K."""
         return predict_views(self, images, intrinsics=intrinsics, extrinsics=extrinsics,
                              target_intrinsics=target_intrinsics,
                              target_extrinsics=target_extrinsics, near=near, far=far,
-                             chunk=chunk)
+                             chunk=chunk, budget=budget, rank_by=rank_by)
 
     # ---- reporting ----------------------------------------------------------------------
 
@@ -544,6 +636,8 @@ class UniqueSplat(nn.Module):
         if self.agnostic is not None:
             rows.append(("view-agnostic: e_a + H_a (W incl. its bias = base weights)",
                          count(self.agnostic)))
+        if self.importance is not None:
+            rows.append(("budget: importance head + adaptation", count(self.importance)))
         if self.specific is not None:
             ve = self.view_embedding
             rows += [("view-specific: E_H ResNet18" + (

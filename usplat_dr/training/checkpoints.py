@@ -152,11 +152,17 @@ def load_models(runs: dict, device) -> dict:
 
 def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) -> None:
     """The paper's protocol: the primary network (encoder and predictor) from a trained
-    usplat checkpoint (``usplat train``'s or a shipped one, any variant); for (b) and (c) its
-    target layers' weights become W, and the hypernetworks' zero-initialised outputs make
-    the model start exactly where that checkpoint is. ``trust``: see
+    usplat checkpoint (``usplat train``'s or a shipped one, by path or name, any variant);
+    for (b) and (c) its target layers' weights become W, and the hypernetworks'
+    zero-initialised outputs make the model start exactly where that checkpoint is. The
+    budget stage: a model with an importance head (``importance=True``) whose config is
+    otherwise the checkpoint's (any variant, e.g. the shipped (c)) takes all of its weights,
+    the new head starting at zero (``_load_adding_importance``). ``trust``: see
     ``read_usplat_checkpoint`` (``model.trust_checkpoint``)."""
     path = Path(path)
+    if not path.is_file() and len(path.parts) == 1:  # a shipped checkpoint's name
+        with contextlib.suppress(FileNotFoundError):
+            path = resolve_checkpoint(path)
     if not path.is_file():
         raise ConfigError(f"model.init_from: checkpoint {str(path)!r} does not exist")
     state = read_usplat_checkpoint(path, trust=trust)
@@ -167,12 +173,40 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
         cfg, sd = _model_state(path, state)
     except ValueError as e:
         raise ConfigError(f"model.init_from: {e}") from None
+    if model.cfg.importance and _without_budget(cfg) == _without_budget(model.cfg):
+        _load_adding_importance(model, path, cfg, sd)
+        return
     if cfg.variant != "baseline":
         raise ConfigError(f"model.init_from: {path} holds variant {cfg.variant!r}; start "
-                          f"from a baseline (a) checkpoint (its primary network is complete)")
+                          f"from a baseline (a) checkpoint (its primary network is complete), "
+                          f"or, for the budget stage (model.overrides.importance=true), from "
+                          f"one of this very model")
     primary = {k.removeprefix("primary."): v.float() for k, v in sd.items()
                if k.startswith("primary.")}
     model.load_mvsplat(primary)
+
+
+def _without_budget(cfg: UniqueSplatCfg) -> dict:
+    """A model config's fields but the importance head's and the ResNet18 file's: what must
+    match for a checkpoint to be this model with or without the head."""
+    d = cfg.to_dict()
+    for key in ("importance", "importance_hidden", "resnet_weights"):
+        d.pop(key)
+    return d
+
+
+def _load_adding_importance(model, path: Path, cfg: UniqueSplatCfg, sd: dict) -> None:
+    """The budget stage (docs/model.md): ``model`` is the checkpoint's model (any variant)
+    with an importance head. Every weight of the checkpoint is loaded; the head keeps its
+    initialisation (zero last layers: the model starts as the checkpoint, ranking by opacity)
+    unless the checkpoint has one of the same shape."""
+    if cfg.importance and cfg.importance_hidden != model.cfg.importance_hidden:
+        sd = {k: v for k, v in sd.items() if not k.startswith("importance.")}
+    missing, unexpected = model.load_state_dict(sd, strict=False)
+    # the same config but the head (and _model_state checked the file against its config)
+    assert not unexpected and all(k.startswith("importance.") for k in missing), (
+        path, unexpected, missing)
+    # (the cached W of H_a is dropped by itself: the loaded parameters' versions changed)
 
 
 def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: bool = True,

@@ -33,6 +33,21 @@ class TrainCfg:
     log_every: int = 10  # steps between rows of metrics.csv
     max_nonfinite: int = 20  # non-finite steps in a row that stop the run
     progress: bool = True  # a progress bar
+    # A Gaussian budget per step (docs/model.md, "A Gaussian budget chosen at inference"):
+    # fractions of the Gaussians the budgeted render keeps; empty: none, every step renders
+    # them all. Needs the importance head (model.overrides.importance: true).
+    budget_fractions: tuple[float, ...] = ()
+    # "choice": one of budget_fractions per step; "log_uniform": log(fraction) uniform between
+    # their smallest and largest (every budget in between at inference, not only the listed)
+    budget_sampling: str = "choice"
+    # temperature of the relaxed top-K mask (model/budget.py, in logits), geometric from the
+    # first value at step 0 to the second at the last step: soft early (every Gaussian near the
+    # threshold gets a gradient), close to the hard top-K of inference at the end
+    budget_tau: tuple[float, float] = (1.0, 0.05)
+    # "all": every parameter trains; "budget": only the importance head and the adaptation
+    # (the rest frozen: the unbudgeted model stays the checkpoint's, bit for bit, and a step
+    # backpropagates through the rasteriser and the head only)
+    trainable: str = "all"
 
 
 @dataclass(frozen=True)
@@ -58,6 +73,9 @@ class LossCfg:
     # weight of the log-depth L1 on the rendered target views' depth (alpha > 0.5 pixels)
     target_depth: float = 0.0
     depth_until_step: int | None = None  # the depth terms end here (None: never)
+    # weight of the MSE of the unbudgeted render beside the budgeted one, in steps with a
+    # budget (train.budget_fractions; with train.trainable=all: keeps the full model's quality)
+    full_render: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -101,6 +119,14 @@ RANGES = {
     "loss.lpips": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     "loss.depth": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     "loss.target_depth": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
+    "loss.full_render": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
+    "train.budget_fractions": (lambda v: all(0 < f <= 1 for f in v),
+                               "must be fractions in (0, 1] (or empty: no budget)"),
+    "train.budget_sampling": (lambda v: v in ("choice", "log_uniform"),
+                              "must be choice or log_uniform"),
+    "train.budget_tau": (lambda v: all(_positive_finite(t) for t in v),
+                         "must be two temperatures, finite and > 0"),
+    "train.trainable": (lambda v: v in ("all", "budget"), "must be all or budget"),
     # more threads than CPUs only time-slice them (and torch/OpenMP would start them all)
     "threads": (lambda v: v is None or 1 <= v <= (os.cpu_count() or 1),
                 (f"must be >= 1 and at most this machine's CPUs (os.cpu_count() = "

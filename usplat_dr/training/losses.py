@@ -1,6 +1,7 @@
 """The training loss: MSE on the rendered target views, + LPIPS after ``loss.lpips_after_step``
 (the field's recipe: MVSplat / pixelSplat), + optional log-depth supervision of the context
-views' predicted depth and of the rendered targets' depth (docs/learning.md).
+views' predicted depth and of the rendered targets' depth (docs/learning.md), + optionally, in
+a step with a Gaussian budget, MSE of the unbudgeted render (``loss.full_render``).
 ``training_loss`` combines the terms as ``LossCfg`` weighs them; ``Trainer.loss`` calls it.
 """
 
@@ -8,9 +9,11 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.evaluation.protocol import depth_scored_pixels
 from usplat_dr.geometry.cameras import pixel_centres
+from usplat_dr.model.decoder import DecoderSplatting
 from usplat_dr.model.uniquesplat import UniqueSplatOutput
 from usplat_dr.training.config import LossCfg
 
@@ -76,7 +79,8 @@ def training_loss(out: UniqueSplatOutput, batch: dict, cfg: LossCfg, step: int, 
     targets, + ``cfg.depth`` x ``depth_loss`` and ``cfg.target_depth`` x ``target_depth_loss``
     where the data has depth (until ``cfg.depth_until_step``), + ``cfg.lpips`` x LPIPS from
     ``cfg.lpips_after_step`` on (``lpips``: the network, ``None`` when the run never uses
-    it). ``batch``'s tensors are moved to ``device``."""
+    it), + ``cfg.full_render`` x MSE of the unbudgeted render in a step with a Gaussian budget
+    (``out.aux["unbudgeted"]``). ``batch``'s tensors are moved to ``device``."""
     pred = out.color
     target = batch["target"]["image"].to(device)
     mse = mse_loss(pred, target)
@@ -92,6 +96,16 @@ def training_loss(out: UniqueSplatOutput, batch: dict, cfg: LossCfg, step: int, 
         d = target_depth_loss(out.depth, out.alpha, batch["target"]["depth"].to(device))
         loss = loss + cfg.target_depth * d
         parts["target_depth"] = d.item()
+    if cfg.full_render > 0 and "unbudgeted" in out.aux:
+        # the unbudgeted Gaussians rendered as the model renders them (its default settings
+        # and black background), so that a budgeted step also keeps the full model's quality
+        t = model_inputs(batch, device)
+        full = DecoderSplatting().forward(out.aux["unbudgeted"], t.target_extrinsics,
+                                          t.target_intrinsics, t.target_near, t.target_far,
+                                          tuple(target.shape[-2:]))
+        m = mse_loss(full.color, target)
+        loss = loss + cfg.full_render * m
+        parts["full_mse"] = m.item()
     if lpips is not None and step >= cfg.lpips_after_step:
         lp = lpips_loss(lpips, pred, target)
         loss = loss + cfg.lpips * lp

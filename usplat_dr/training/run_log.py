@@ -29,7 +29,8 @@ METRICS_FILE = "metrics.csv"
 #: The gradient-norm columns of the network's parts (before clipping), and their labels.
 GRAD_LABELS = {"grad_primary": "primary network", "grad_agnostic": "view-agnostic (e_a, H_a)",
                "grad_specific": "view-specific H_s",
-               "grad_view_features": "view-specific features (ResNet, Proj, phi)"}
+               "grad_view_features": "view-specific features (ResNet, Proj, phi)",
+               "grad_importance": "importance head and budget adaptation"}
 
 #: The errors of a write that found no room: a full disk, a full quota, a file-size limit
 #: (``ulimit -f``, with SIGXFSZ ignored as batch schedulers do).

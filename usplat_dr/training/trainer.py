@@ -177,21 +177,24 @@ def adam(params, lr: float) -> torch.optim.Adam:
 def parameter_groups(model: torch.nn.Module, lr: float | int,  # noqa: PYI041
                      hyper_lr_scale: float | int = 1.0) -> list[dict]:  # noqa: PYI041
     """Adam's parameter groups: the primary network at ``lr``; the hypernetwork branches
-    (e_a and H_a, H_s, the view-specific features) at ``lr * hyper_lr_scale``
-    (``optimizer.hyper_lr_scale``: the per-branch learning rate of docs/learning.md; 1 is the
-    paper's single rate). One group when the scale is 1 or the model has no hypernetwork."""
+    (e_a and H_a, H_s, the view-specific features) and the importance head at
+    ``lr * hyper_lr_scale`` (``optimizer.hyper_lr_scale``: the per-branch learning rate of
+    docs/learning.md; 1 is the paper's single rate). One group when the scale is 1 or the
+    model has no hypernetwork. Frozen parameters (``requires_grad`` off) are left out."""
     scale = float(hyper_lr_scale)
     if not (math.isfinite(scale) and scale > 0):
         raise ConfigError(f"optimizer.hyper_lr_scale must be a positive number, got "
                           f"{hyper_lr_scale!r}")
     primary, hyper = [], []
     for name, p in model.named_parameters():
-        (primary if name.split(".", 1)[0] == "primary" else hyper).append(p)
+        if p.requires_grad:  # (train.trainable=budget freezes the rest)
+            (primary if name.split(".", 1)[0] == "primary" else hyper).append(p)
     if scale == 1.0 or not hyper:
         # model.parameters()'s order: Adam's state is keyed by position, so checkpoints of
         # runs before per-branch rates existed resume onto the same parameters
-        return [{"params": list(model.parameters()), "lr": lr}]
-    return [{"params": primary, "lr": lr}, {"params": hyper, "lr": lr * scale}]
+        return [{"params": [p for p in model.parameters() if p.requires_grad], "lr": lr}]
+    groups = [{"params": primary, "lr": lr}, {"params": hyper, "lr": lr * scale}]
+    return [g for g in groups if g["params"]]  # (frozen parameters are in neither)
 
 
 class Batches:
@@ -264,6 +267,49 @@ def differing_fields(saved: dict, current: dict, prefix: str = "") -> list[tuple
     return out
 
 
+def freeze_for_budget(model: torch.nn.Module, c: RootCfg) -> None:
+    """Check the budget settings (``train.budget_fractions``, ``train.trainable``) against the
+    model (a ``ConfigError`` naming the key and the fix) and, for ``trainable=budget``, freeze
+    every parameter but the importance head's and the adaptation's."""
+    tc = c.train
+    head = getattr(model, "importance", None)
+    if (tc.budget_fractions or tc.trainable == "budget") and head is None:
+        raise ConfigError("train.budget_fractions and train.trainable=budget need a model "
+                          "with an importance head: set model.overrides.importance=true (the "
+                          "config synthetic_tiny_budget.yaml does)")
+    if tc.trainable != "budget":
+        return
+    if not tc.budget_fractions or (tc.budget_sampling == "choice"
+                                   and all(f == 1 for f in tc.budget_fractions)):
+        raise ConfigError("train.trainable=budget trains only the importance head, which a "
+                          "step learns from only when its budget keeps fewer than all the "
+                          "Gaussians: set train.budget_fractions below 1")
+    if tc.budget_sampling == "choice" and 1.0 in tc.budget_fractions:
+        raise ConfigError(f"train.budget_fractions={list(tc.budget_fractions)} holds 1 with "
+                          f"train.trainable=budget: such a step keeps every Gaussian and "
+                          f"leaves nothing to train (the loss has no gradient); drop it")
+    for name, p in model.named_parameters():
+        p.requires_grad_(name.split(".", 1)[0] == "importance")
+
+
+def step_budget(c: RootCfg, step: int) -> dict:
+    """The budget of step ``step``: ``forward``'s ``budget``, ``budget_tau`` and ``rank_by``
+    (``{}`` without ``train.budget_fractions``). Drawn from a generator seeded with the run's
+    seed and the step: the same on every rank and after a resume, and no RNG state touched."""
+    tc = c.train
+    if not tc.budget_fractions:
+        return {}
+    rng = random.Random(c.seed * 1_000_003 + step)
+    if tc.budget_sampling == "choice":
+        fraction = rng.choice(tc.budget_fractions)
+    else:
+        lo, hi = math.log(min(tc.budget_fractions)), math.log(max(tc.budget_fractions))
+        fraction = math.exp(rng.uniform(lo, hi))
+    t0, t1 = tc.budget_tau
+    tau = t0 * (t1 / t0) ** min(step / max(tc.steps - 1, 1), 1.0)
+    return {"budget": float(fraction), "budget_tau": tau, "rank_by": "learned"}
+
+
 # ---- the trainer -------------------------------------------------------------------------------
 
 class Trainer:
@@ -295,9 +341,12 @@ class Trainer:
             self.lpips = LPIPS.from_files(c.loss.lpips_vgg, c.loss.lpips_lin).to(self.device)
 
         self.model = model_from_config(c.model).to(self.device)
+        freeze_for_budget(self.model, c)
         self.ddp = self.model
         if self.world > 1:
-            self.ddp = torch.nn.parallel.DistributedDataParallel(self.model)
+            # a step whose budget keeps everything leaves the importance head unused
+            self.ddp = torch.nn.parallel.DistributedDataParallel(
+                self.model, find_unused_parameters=bool(c.train.budget_fractions))
         self.step_tracker = StepTracker()
         self.batches = Batches(dataset_from_section(c.dataset, "train", self.step_tracker),
                                c.data_loader.batch_size, c.data_loader.num_workers)
@@ -471,7 +520,8 @@ class Trainer:
     #: H_s and the view-specific features (ResNet18, lateral convs, Proj, phi).
     GRAD_GROUPS: ClassVar[dict[str, str]] = {
         "primary": "grad_primary", "agnostic": "grad_agnostic",
-        "specific": "grad_specific", "view_embedding": "grad_view_features"}
+        "specific": "grad_specific", "view_embedding": "grad_view_features",
+        "importance": "grad_importance"}
 
     def group_grad_norms(self) -> dict:
         """Gradient norms per part of the network (``GRAD_GROUPS``), before clipping."""
@@ -522,8 +572,9 @@ class Trainer:
         # BatchNorm statistics change in the forward pass: kept to be put back if the step
         # is skipped (a NaN input would otherwise poison them for good)
         buffers = {n: b.detach().clone() for n, b in self.model.named_buffers()}
+        budget = step_budget(self.config, self.step)
         try:
-            out = self.ddp(*args, global_step=self.step)
+            out = self.ddp(*args, global_step=self.step, **budget)
             loss, parts = self.loss(out, batch)
             loss.backward()
         except ValueError as e:
@@ -549,6 +600,8 @@ class Trainer:
         with torch.no_grad():
             mse = (out.color.clamp(0, 1) - target).square().mean((-3, -2, -1))
             psnr = (-10 * torch.log10(mse.clamp(min=1e-10))).mean().item()
+        if budget:
+            parts["budget"] = budget["budget"]
         return {"loss": loss.item(), "psnr": psnr, "grad_norm": norm.item(),
                 "lr": self.scheduler.get_last_lr()[0], **parts}
 
@@ -601,7 +654,8 @@ class Trainer:
         return run_folder_lock(self.out) if self.rank == 0 else contextlib.nullcontext()
 
     #: The columns of metrics.csv.
-    METRICS = ("step", "loss", "mse", "lpips", "depth", "target_depth", "psnr", "grad_norm",
+    METRICS = ("step", "loss", "mse", "lpips", "depth", "target_depth", "budget", "full_mse",
+               "psnr", "grad_norm",
                *GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s")
 
     def fit(self) -> dict:
