@@ -5,6 +5,11 @@ record it in checkpoints/manifest.json.
     python train/ship_checkpoint.py --checkpoint outputs/tiny_depth/checkpoints/last.ckpt \
         --name tiny_baseline --eval-data outputs/big/test2000 \
         --train-command "usplat train --config ..." --data "480 scenes, seed 100"
+
+A model fine-tuned with most of its weights frozen (the budget stage: an importance head on a
+shipped model) ships as an add-on: ``--base tiny_full`` stores only the weights that differ
+from the shipped tiny_full.pt, and ``--budgets 0.1 0.3`` adds the held-out metrics at those
+fractions of the Gaussians (``rank_by="learned"``) to its manifest entry.
 """
 
 import argparse
@@ -25,6 +30,7 @@ from usplat_dr.training.checkpoints import (  # noqa: E402
     export_weights,
     load_model,
     read_usplat_checkpoint,
+    resolve_checkpoint,
 )
 
 ROOT = Path(__file__).parents[1] / "checkpoints"
@@ -37,12 +43,13 @@ def sha256(path: Path) -> str:
 
 
 def held_out(checkpoint: Path, data: str, size: int, splits: list[str],
-             trust: bool = False) -> dict:
+             trust: bool = False, budget=None) -> dict:
     model, _ = load_model(checkpoint, trust=trust)
     dataset = {"name": "synth", "roots": [data], "image_shape": [size, size]}
     with tempfile.TemporaryDirectory() as out:
         summary = evaluate(model, dataset, synthetic_indices(data, splits), out,
-                           images_per_split=0, progress=False)
+                           images_per_split=0, progress=False, budget=budget,
+                           rank_by=None if budget is None else "learned")
     return summary["splits"]
 
 
@@ -57,6 +64,10 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=64, help="evaluation image size")
     p.add_argument("--root", type=Path, default=ROOT, help="checkpoints folder (with its "
                    "manifest.json)")
+    p.add_argument("--base", default=None, help="ship an add-on: only the weights that "
+                   "differ from this shipped checkpoint's (a name in the manifest)")
+    p.add_argument("--budgets", type=float, nargs="+", default=[], help="also record the "
+                   "standard split's metrics at these fractions of the Gaussians (learned)")
     p.add_argument("--trust-checkpoint", action="store_true", help="unpickle --checkpoint (and "
                    "its model.init_from) fully: for your own files written before checkpoints "
                    "held plain data only")
@@ -71,6 +82,9 @@ def main(argv=None) -> int:
     # Read before exporting: the init may be the very file this export replaces (a new stage
     # of tiny_baseline.pt trained from the previous one).
     init = state["config"]["model"].get("init_from")
+    if init:  # a path, or a shipped checkpoint's name: recorded as the other entries' paths
+        path = resolve_checkpoint(init)
+        init = f"checkpoints/{path.name}" if path.parent.resolve() == ROOT.resolve() else str(path)
     init_steps = read_usplat_checkpoint(init, trust=trust)["step"] if init else 0
     manifest_path = args.root / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else []
@@ -78,12 +92,14 @@ def main(argv=None) -> int:
                          == (args.root / e["file"]).resolve()), None)
     if shipped_init is not None:  # a shipped file: its own training counts every stage
         init_steps = shipped_init["steps"]
-    export_weights(args.checkpoint, file, half=True, metadata=metadata, trust=trust)
+    export_weights(args.checkpoint, file, half=True, metadata=metadata, trust=trust,
+                   base=args.base)
     shipped = held_out(file, args.eval_data, args.size, args.splits)
     diff = abs(shipped["standard"]["psnr"] - reference["standard"]["psnr"])
     half = diff <= HALF_TOLERANCE_DB
     if not half:
-        export_weights(args.checkpoint, file, half=False, metadata=metadata, trust=trust)
+        export_weights(args.checkpoint, file, half=False, metadata=metadata, trust=trust,
+                       base=args.base)
         shipped = held_out(file, args.eval_data, args.size, args.splits)
     cfg = state["model_config"]
     entry = {"name": args.name, "preset": state["config"]["model"].get("preset", "tiny"),
@@ -95,6 +111,12 @@ def main(argv=None) -> int:
              "float16_psnr_change_db": round(diff, 4),
              "provenance": state.get("provenance", {}),
              "metrics": {"eval_data": args.eval_data, "splits": shipped}}
+    if args.base:
+        entry["base"] = args.base
+    if args.budgets:
+        entry["metrics"]["budgets"] = {
+            str(k): held_out(file, args.eval_data, args.size, ["standard"], budget=k)["standard"]
+            for k in args.budgets}
     manifest = [e for e in manifest if e["name"] != args.name] + [entry]
     write_json(manifest_path, manifest)
     std = shipped["standard"]

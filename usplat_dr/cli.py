@@ -71,11 +71,11 @@ def shows_default(action: argparse.Action) -> bool:
 
 class DefaultsHelpFormatter(argparse.HelpFormatter):
     """Help lines end in "(default: X)" wherever ``shows_default`` says so and the help does
-    not already state it."""
+    not already state it (in its own words: "(default: ...")."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if "%(default)" not in text and shows_default(action):
+        if "%(default)" not in text and "(default:" not in text and shows_default(action):
             text = f"{text.strip()} (default: %(default)s)".strip()
         return text
 

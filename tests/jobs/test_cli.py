@@ -214,10 +214,12 @@ def test_version_and_help_state_the_defaults(capsys):
     assert capsys.readouterr().out.strip() == f"usplat-dr {usplat_dr.__version__}"
     for command, shown in (("render", ["(default: 60)", "(default: outputs/render/video)",
                                        "(default: orbit)", "(default: cpu)"]),
-                           ("eval", ["(default: cpu)"])):
+                           ("eval", ["(default: cpu)"]),
+                           ("bench", ["(default: all, cull,", "(default: cpu)"])):
         with pytest.raises(SystemExit):
             main([command, "--help"])
         text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
         assert all(s in text for s in shown), (command, text)
-        # unset values and flags say nothing
+        # unset values and flags say nothing; a default the help words itself is said once
         assert "(default: None)" not in text and "(default: False)" not in text
+        assert "Settings(" not in text and "Config(" not in text and "{'" not in text

@@ -45,7 +45,10 @@ def test_manifest_lists_the_required_models_within_budget():
     by = {e["name"]: e for e in MANIFEST}
     files = {e["file"] for e in MANIFEST}
     for e in MANIFEST:
-        if e["variant"] != "baseline" or e["name"].endswith("_continued"):
+        if e.get("base"):
+            # an add-on (the budget stage): fine-tuned from the shipped file it is stored on
+            assert Path(e["init_from"]).name == by[e["base"]]["file"], e["name"]
+        elif e["variant"] != "baseline" or e["name"].endswith("_continued"):
             # (b), (c) and the control: fine-tuned by the paper's protocol from the shipped (a)
             assert Path(e["init_from"]).name == by["tiny_baseline"]["file"], e["name"]
         elif e.get("init_from_commit"):
@@ -100,7 +103,11 @@ def test_entry_matches_its_sha256_and_loads(entry):
     assert "optimizer" not in state and state["format"] == "usplat-weights/1"
     model, step = load_model(path)
     assert model.cfg.variant == entry["variant"] and step >= 1
-    reference = UniqueSplat.from_preset(entry["preset"], variant=entry["variant"])
+    # an add-on's model is its base's with the budget stage's importance head
+    assert model.cfg.importance == bool(entry.get("base")) == ("base" in state)
+    reference = UniqueSplat.from_preset(entry["preset"], variant=entry["variant"],
+                                        importance=model.cfg.importance,
+                                        importance_hidden=model.cfg.importance_hidden)
     assert sum(p.numel() for p in model.parameters()) == sum(
         p.numel() for p in reference.parameters())
     # a render on two cameras a short baseline apart: finite, in range

@@ -6,6 +6,7 @@ trained (a) as the start of (b) and (c) (``init_from_checkpoint``), a shippable 
 
 import contextlib
 import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -38,7 +39,52 @@ def read_usplat_checkpoint(checkpoint: str | os.PathLike, map_location="cpu",
     if not isinstance(state, dict):
         raise ValueError(f"checkpoint {str(path)!r} holds a {type(state).__name__}, not a "
                          f"usplat checkpoint (a dict with 'model' and 'model_config')")
+    if "base" in state:
+        state = _on_base(path, state, map_location, trust)
     return state
+
+
+def _file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _on_base(path: Path, state: dict, map_location, trust: bool) -> dict:
+    """An add-on checkpoint (``export_weights(..., base=)``) completed: it holds only the
+    weights that differ from a base checkpoint's (the budget stage's importance head on a
+    shipped model: kilobytes instead of a copy of the model), and names the base by file name
+    and sha256. The base is looked for beside the add-on, then among the shipped checkpoints,
+    and must be byte for byte the one the add-on was made on."""
+    base = state["base"]
+    if not (isinstance(base, dict) and isinstance(base.get("file"), str)
+            and isinstance(base.get("sha256"), str)):
+        raise ValueError(f"checkpoint {str(path)!r}: its 'base' must be {{'file': NAME, "
+                         f"'sha256': HEX}} (written by export_weights(..., base=))")
+    name = base["file"]
+    # a file name, never a path: a crafted file could otherwise name any file of the machine
+    if Path(name).name != name or name in (".", "..") or not name.endswith(".pt"):
+        raise ValueError(f"checkpoint {str(path)!r}: its base {name!r} is not a .pt file name")
+    found = next((p for p in (path.parent / name, CHECKPOINTS / name) if p.is_file()), None)
+    if found is None:
+        raise FileNotFoundError(f"checkpoint {str(path)!r} holds only the weights it adds to "
+                                f"{name}; put {name} (usplat-dr's checkpoints/) beside it")
+    if _file_sha256(found) != base["sha256"]:
+        raise ValueError(f"checkpoint {str(path)!r} was made on a {name} with sha256 "
+                         f"{base['sha256'][:12]}..., and {found} is another file (a newer "
+                         f"release?): use the {name} it was made on")
+    base_state = load_torch_file(found, "checkpoint", map_location, trust=trust,
+                                 trust_hint=TRUST_HINT)
+    if not isinstance(base_state, dict) or "base" in base_state:
+        raise ValueError(f"checkpoint {str(path)!r}: its base {found} is not a complete usplat "
+                         f"checkpoint (an add-on's base holds every weight)")
+    own, inherited = state.get("model"), base_state.get("model")
+    if not isinstance(own, dict) or not isinstance(inherited, dict):
+        raise ValueError(f"checkpoint {str(path)!r} or its base {found}: 'model' is not a "
+                         f"state dict (names -> tensors)")
+    return {**state, "model": {**inherited, **own}}
 
 
 @contextlib.contextmanager
@@ -210,13 +256,20 @@ def _load_adding_importance(model, path: Path, cfg: UniqueSplatCfg, sd: dict) ->
 
 
 def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: bool = True,
-                   metadata: dict | None = None, trust: bool = False) -> Path:
+                   metadata: dict | None = None, trust: bool = False,
+                   base: str | os.PathLike | None = None) -> Path:
     """A shippable copy of a training checkpoint: the model's weights (float16 when ``half``:
     half the bytes, and evaluation within 0.01 dB of float32, measured by
     ``train/ship_checkpoint.py``), its model config, training config, step, provenance and
     ``metadata``; no optimiser, scheduler or RNG state. Plain data only, so it loads with
     ``torch.load(weights_only=True)``; ``usplat eval/render/export-ply --checkpoint`` and
-    ``model.init_from`` read it like a training checkpoint."""
+    ``model.init_from`` read it like a training checkpoint.
+
+    ``base`` (a shipped checkpoint's name or a complete usplat checkpoint file): an add-on,
+    holding only the weights that differ from ``base``'s (compared as stored: a model
+    fine-tuned from a float16 file and frozen there gives back the same float16 values) and
+    naming ``base`` by file name and sha256. It loads like any checkpoint where that base
+    lies beside it or among the shipped ones (``read_usplat_checkpoint``)."""
     state = read_usplat_checkpoint(checkpoint, trust=trust)
     if "model_config" not in state:
         raise ValueError(f"checkpoint {checkpoint} is not a usplat training checkpoint")
@@ -226,6 +279,17 @@ def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: 
                "model_config": state["model_config"], "config": state.get("config", {}),
                "step": state.get("step", 0), "provenance": state.get("provenance", {}),
                "metadata": metadata or {}}
+    if base is not None:
+        base_path = resolve_checkpoint(base)
+        base_state = read_usplat_checkpoint(base_path, trust=trust)
+        if "base" in base_state:
+            raise ValueError(f"base: {base_path} is itself an add-on; name a complete one")
+        inherited = base_state["model"]
+        shipped["model"] = {
+            k: v for k, v in weights.items()
+            if k not in inherited or inherited[k].shape != v.shape
+            or not torch.equal(inherited[k].double(), v.double())}
+        shipped["base"] = {"file": base_path.name, "sha256": _file_sha256(base_path)}
     return torch_save(shipped, out)
 
 
