@@ -71,6 +71,29 @@ def test_drjit_entry_equals_torch_entry():
                                atol=1e-6)  # same kernels; atomic summation order only
 
 
+def test_drjit_entry_gradients_add_to_other_uses_of_the_inputs():
+    # The input gathers' adjoints are plain scatters (ReduceMode.Permute), which overwrite a
+    # gradient instead of adding to it: a second term on the same inputs must still count.
+    from drjit.llvm.ad import TensorXf
+
+    scene = random_scene(60, 12, 14, batch=1, seed=8, sh_degree=1)
+    args = [TensorXf(a.numpy()) if isinstance(a, torch.Tensor) else a for a in scene.args()]
+    leaves = args[6:]
+    for t in leaves:
+        dr.enable_grad(t)
+    out = rasterize_drjit(*args)
+    dr.backward(dr.sum(out.depth.array))
+    alone = [dr.grad(t).numpy().copy() for t in leaves]
+    for t in leaves:
+        dr.clear_grad(t)
+    out = rasterize_drjit(*args)
+    extra = sum(dr.sum(t.array * t.array) for t in leaves)  # gradient 2 x
+    dr.backward(dr.sum(out.depth.array) + extra)
+    for t, g in zip(leaves, alone):
+        torch.testing.assert_close(torch.from_numpy(dr.grad(t).numpy()),
+                                   torch.from_numpy(g + 2.0 * t.numpy()), rtol=1e-5, atol=1e-5)
+
+
 def test_repeated_calls_are_deterministic(device):
     scene = pixel_aligned_scene(24, 24, seed=2).to(device=device)
     first = rasterize(*scene.args())

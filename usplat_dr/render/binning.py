@@ -180,13 +180,19 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     # Guarded divisor: masked tail lanes of a packet may read 0 and trap
     # (docs/rasteriser_notes.md, "Integer division in kernels").
     w = dr.maximum(dr.gather(UInt32, x1, gid) - gx0, 1)
-    row = k // w
+    # row = k // w without an integer division (scalarised on SIMD CPUs: 16 divisions per
+    # packet; the kernel ran 13.3 -> 10.1-10.9 ms at 256x256): (k + 0.5) / w is never an
+    # integer, and in float32 its floor is within one of the quotient while k < 2^24 (a
+    # rectangle of 16.7M tiles); the two integer checks below make the row exact.
+    Float = type(p.u)
+    row = UInt32(dr.floor((Float(k) + 0.5) / Float(w)))
+    row = dr.select(row * w > k, row - 1, row)
+    row = dr.select((row + 1) * w <= k, row + 1, row)
     tx = gx0 + (k - row * w)
     ty = gy0 + row
     tile = dr.gather(UInt32, tile_base, gid) + ty * grid_x + tx
 
     # ---- Exact ellipse-vs-tile test (pixel samples at tile origin + 0.5 .. + T - 0.5) ----
-    Float = type(p.u)
     q_bound = dr.gather(Float, q_max, gid)
     u = dr.gather(Float, dr.detach(p.u), gid)
     v = dr.gather(Float, dr.detach(p.v), gid)
@@ -204,7 +210,8 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     dr.eval(bucket, gid)  # one pair-generation kernel for both consumers below
     buckets = 1 << num_tiles.bit_length()  # a power of two > num_tiles
     perm_tile = stable_bucket_order(bucket, num_pairs, buckets)
-    dr.scatter_reduce(dr.ReduceOp.Add, tile_count, UInt32(1), bucket, active=bucket < num_tiles)
+    dr.scatter_reduce(dr.ReduceOp.Add, tile_count, UInt32(1), bucket, active=bucket < num_tiles,
+                      mode=dr.ReduceMode.Direct)
     tile_end = dr.prefix_reduce(dr.ReduceOp.Add, tile_count, exclusive=False)
     tile_start = tile_end - tile_count
     num_kept = int(tile_end[num_tiles - 1])

@@ -247,18 +247,24 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     # ---- Inputs, one lane per Gaussian ----
     lane = dr.arange(UInt32, n)
     batch = lane // dr.maximum(dr.opaque(UInt32, g), 1)
-    # The adjoint of a gather is a scatter-add into the input's gradient. ReduceMode.Local keeps
-    # that kernel independent of G: the default (Expand on LLVM) bakes the target size into the
-    # kernel and recompiles it for every new number of Gaussians (docs/rasteriser_notes.md,
-    # "Recompilation").
+    # The adjoint of a gather is a scatter-add into the input's gradient. Each input element is
+    # read by at most one lane here, so ReduceMode.Permute makes that adjoint a plain scatter
+    # (docs/rasteriser_notes.md, "Input gathers"): Local reduced and added atomically lane by
+    # lane, and the default (Expand on LLVM) bakes the target size into the kernel and
+    # recompiles it for every new number of Gaussians ("Recompilation"). A Permute adjoint
+    # *writes* into the source's gradient, which would drop gradients reaching the same input
+    # from elsewhere (a loss term on the means, say): the gathers read a private node (x * 1)
+    # whose gradient only they write, and whose own adjoint adds into the input's gradient.
     def take(source, index):
-        return dr.gather(Float, source, index, mode=dr.ReduceMode.Local)
+        return dr.gather(Float, source, index, mode=dr.ReduceMode.Permute)
 
-    xyz = [take(means.array, lane * 3 + i) for i in range(3)]
-    cov6 = [take(covariances.array, lane * 9 + i) for i in (0, 1, 2, 4, 5, 8)]
-    coeffs = [[take(sh_coefficients.array, lane * (3 * d) + (c * d + i))
+    means_a, covs_a, sh_a, opac_a = (t.array * 1.0 for t in (means, covariances,
+                                                              sh_coefficients, opacities))
+    xyz = [take(means_a, lane * 3 + i) for i in range(3)]
+    cov6 = [take(covs_a, lane * 9 + i) for i in (0, 1, 2, 4, 5, 8)]
+    coeffs = [[take(sh_a, lane * (3 * d) + (c * d + i))
                for i in range(min(d, 16))] for c in range(3)]
-    opac = take(opacities.array, lane)
+    opac = take(opac_a, lane)
     cam = _gather_camera(_cameras(mod, extrinsics, intrinsics, near, width, height,
                                   settings.projection), batch)
 
