@@ -114,8 +114,12 @@ def main(argv=None) -> int:
     if args.base:
         entry["base"] = args.base
     if args.budgets:
+        # (where each budget goes is the evaluation's allocation, left out: NaN where a
+        # material is absent, which strict JSON readers refuse)
         entry["metrics"]["budgets"] = {
-            str(k): held_out(file, args.eval_data, args.size, ["standard"], budget=k)["standard"]
+            str(k): {key: v for key, v in held_out(file, args.eval_data, args.size, ["standard"],
+                                                   budget=k)["standard"].items()
+                     if key != "allocation"}
             for k in args.budgets}
     manifest = [e for e in manifest if e["name"] != args.name] + [entry]
     write_json(manifest_path, manifest)

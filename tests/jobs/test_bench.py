@@ -4,7 +4,8 @@ end-to-end run is in ``test_evaluation.test_demo_quick_end_to_end``)."""
 import pytest
 import torch
 
-from usplat_dr.jobs.bench import BenchConfig, PeakMemory, choose
+from usplat_dr.cli import main
+from usplat_dr.jobs.bench import BenchConfig, PeakMemory, choose, configs_argument
 from usplat_dr.jobs.report import pareto
 
 
@@ -52,11 +53,16 @@ def test_peak_memory_sees_an_allocation():
     assert big.gib >= 0.75 * 64 / 1024 and small.gib < big.gib
 
 
-def test_config_parsing_names_the_choices():
+def test_config_parsing_names_the_choices(capsys):
     assert BenchConfig.parse("tiny:c") == BenchConfig("tiny", "full")
     assert BenchConfig.parse("paper:baseline").label == "paper (a)"
     with pytest.raises(ValueError, match="preset:variant"):
         BenchConfig.parse("huge:c")
+    assert configs_argument("none") == ()  # only the --checkpoint models
+    assert configs_argument("tiny:a,tiny:c") == (BenchConfig("tiny", "baseline"),
+                                                BenchConfig("tiny", "full"))
+    assert main(["bench", "--configs", "none", "--out", "unused"]) != 0
+    assert "give at least one --checkpoint" in capsys.readouterr().err
 
 
 def test_measure_sweeps_gaussian_budgets_beside_pruning(tmp_path, caplog):

@@ -100,12 +100,14 @@ def test_demo_quick_end_to_end(wheel_demo):
     with open(tmp_path / "bench_demo" / "bench.csv") as f:
         rows = list(csv.DictReader(f))
     by = {(r["config"], r["prune"], r["render_size"]): r for r in rows}
-    # 2 models x (6 prunings at 32 px + 16 px + 2 Gaussian budgets x dither/opacity/random:
-    # the shipped checkpoints have no importance head, so no learned rows)
-    assert len(by) == len(rows) == 2 * (6 + 1 + 2 * 3)
-    kept = float(by[("tiny (c)", "dither10%", "32")]["kept_fraction"])
-    assert abs(kept - round(0.1 * 2048) / 2048) < 1e-9  # K = 205 of 2 x 32 x 32 per view
+    # 2 models x (6 prunings at 32 px + 16 px + 2 Gaussian budgets x learned/dither/opacity/
+    # random: the budget stage's add-ons, with their importance head)
+    assert len(by) == len(rows) == 2 * (6 + 1 + 2 * 4)
+    for ranking in ("learned", "dither"):
+        kept = float(by[("tiny (c)", f"{ranking}10%", "32")]["kept_fraction"])
+        assert abs(kept - round(0.1 * 2048) / 2048) < 1e-9  # K = 205 of 2 x 32 x 32 per view
     assert "## Where the budget goes" in text and "allocation/standard/" in text
+    assert "`rank_by=learned`" in text and "tiny_full_budget" in text
     for config in ("tiny (a)", "tiny (c)"):
         # exact culling: same PSNR (float32 summation order only)
         assert abs(float(by[(config, "cull", "32")]["psnr_change_db"])) < 1e-3

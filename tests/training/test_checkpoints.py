@@ -18,6 +18,7 @@ import torch
 from usplat_dr.model import UniqueSplat
 from usplat_dr.training.checkpoints import (
     BASE,
+    BUDGETED,
     SHIPPED,
     load_model,
     registered_verdict,
@@ -64,7 +65,7 @@ def test_the_registry_names_shipped_files(tmp_path):
     """``shipped_checkpoints`` and ``registered_verdict`` read this folder (the default root in a
     source checkout); the names the demo starts from are in the manifest."""
     shipped = shipped_checkpoints(ROOT)
-    assert {BASE, *SHIPPED.values()} <= set(shipped)
+    assert {BASE, *SHIPPED.values(), *BUDGETED.values()} <= set(shipped)
     assert shipped == {e["name"]: ROOT / e["file"] for e in MANIFEST}
     assert set(shipped_checkpoints()) == set(shipped)
     assert registered_verdict(ROOT) == json.loads((ROOT / "verdict.json").read_text())

@@ -37,10 +37,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import drjit as dr
 import torch
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
+from usplat_dr.backend import require_llvm
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation import depth_metrics, nan_mean, synthetic_indices
@@ -444,8 +446,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="outputs/demo", help="the demo folder (its data and runs "
                    "are shared)")
     p.add_argument("--configs", type=configs_argument, default=DEFAULT_CONFIGS,
-                   help="comma-separated preset:variant, e.g. tiny:a,tiny:c,small:c (default: "
-                   "tiny a/b/c, small c, paper c)")
+                   help="comma-separated preset:variant, e.g. tiny:a,tiny:c,small:c, or none "
+                   "(only the --checkpoint models) (default: tiny a/b/c, small c, paper c)")
     p.add_argument("--prunes", type=prunes_argument, default=PRUNES,
                    help="comma-separated pruning settings (default: all, cull, cull+merge1px, "
                    "cull+merge2px, keep50%%, keep25%%)")
@@ -468,6 +470,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--jobs", type=non_negative_int, default=0,
                    help="Mitsuba worker processes (0: auto)")
+    p.add_argument("--threads", type=non_negative_int, default=0,
+                   help="CPU threads of torch and Dr.Jit for the measurements (0: their "
+                   "defaults, every core)")
 
 
 def fractions_argument(text: str) -> tuple[float, ...]:
@@ -506,7 +511,9 @@ def checkpoint_argument(text: str) -> tuple[BenchConfig, str]:
 
 
 def configs_argument(text: str) -> tuple[BenchConfig, ...]:
-    """``--configs``: comma-separated ``preset:variant``."""
+    """``--configs``: comma-separated ``preset:variant``, or ``none``."""
+    if text == "none":
+        return ()
     try:
         return tuple(BenchConfig.parse(c) for c in text.split(","))
     except ValueError as e:
@@ -533,6 +540,14 @@ def sizes_argument(text: str) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.configs and not args.checkpoints:
+        raise ValueError("--configs none measures the --checkpoint models only: give at least "
+                         "one --checkpoint PRESET:VARIANT:TAG=PATH")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+        if args.device == "cpu":
+            require_llvm()  # Dr.Jit's target pinned before its first kernel
+            dr.set_thread_count(args.threads)
     run_bench(args.out, "quick" if args.quick else "full", args.configs, args.render_sizes,
               args.prunes, device=args.device, jobs=args.jobs, fractions=args.fractions,
               rank_by=args.rank_by, splits=args.splits, checkpoints=dict(args.checkpoints))

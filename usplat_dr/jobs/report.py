@@ -13,7 +13,15 @@ from matplotlib.lines import Line2D
 from usplat_dr.evaluation.verdict import Comparison
 from usplat_dr.evaluation.verdict import table as verdict_table
 from usplat_dr.io import atomic_open
-from usplat_dr.jobs.budgets import BASE, FINETUNE_LR, PRESET, SHIPPED, VARIANTS, Budget
+from usplat_dr.jobs.budgets import (
+    BASE,
+    BUDGETED,
+    FINETUNE_LR,
+    PRESET,
+    SHIPPED,
+    VARIANTS,
+    Budget,
+)
 from usplat_dr.training.run_log import GRAD_LABELS
 
 
@@ -213,8 +221,11 @@ def speed_lines(r: DemoResults) -> list[str]:
                      f"{p['kept_fraction']:.2f} | {'yes' if p['safe'] else 'no'} |")
     if r.bench.get("budgets"):
         lines += ["", ("Gaussian budgets chosen at inference (docs/model.md, \"A Gaussian budget "
-                       "chosen at inference\"): worst PSNR change over the models against "
-                       "all Gaussians, mean fraction kept."), "",
+                       "chosen at inference\"), on the budget stage's add-ons "
+                       f"(`{'`, `'.join(BUDGETED.values())}`: the models above with a trained "
+                       "importance head; `learned` is its ranking, `dither` its untrained "
+                       "start): worst PSNR change over the models against all Gaussians, mean "
+                       "fraction kept."), "",
                   "| budget | worst PSNR change | kept |", "|---|---|---|"]
         lines += [f"| {name} | {p['worst_psnr_change_db']:+.3f} dB | {p['kept_fraction']:.2f} |"
                   for name, p in r.bench["budgets"].items()]

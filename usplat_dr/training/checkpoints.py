@@ -308,6 +308,10 @@ CHECKPOINTS = next((p for p in (Path(__file__).parents[1] / "checkpoints",
 BASE = "tiny_baseline"
 SHIPPED = {"baseline": "tiny_baseline_continued", "agnostic": "tiny_agnostic",
            "full": "tiny_full"}
+#: The budget stage on SHIPPED's (a) and (c) (docs/model.md, "A Gaussian budget chosen at
+#: inference"): add-ons holding the importance head, the rest their base's bit for bit (so
+#: unbudgeted they render exactly as the SHIPPED ones); ``usplat demo`` charts their budgets.
+BUDGETED = {"baseline": "tiny_baseline_budget", "full": "tiny_full_budget"}
 
 
 def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
