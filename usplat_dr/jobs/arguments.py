@@ -76,9 +76,10 @@ def add_budget_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rank-by", choices=["learned", "dither", "opacity", "random"],
                    help="how --gaussians ranks them: learned (the model's importance head, "
                    "the kept ones adapted to the budget), dither (the head's untrained start: "
-                   "ordered dithering of opacity, the coverage rule), opacity or random "
-                   "(seeded), the controls (default: learned where the model has the head, "
-                   "else dither, with a warning)")
+                   "ordered dithering of opacity, the coverage rule; the better one for "
+                   "budgets of 50%% and more), opacity or random (seeded), the controls "
+                   "(default: learned where the model has the head, else dither, with a "
+                   "warning)")
 
 
 def out_folder(text: str) -> str:
