@@ -10,9 +10,9 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
+from tests.synth_sets import synthetic_set
 from usplat_dr.config import ConfigError, load_config
 from usplat_dr.data.dataset import dataset_from_section
-from usplat_dr.data.synth import synthesize
 from usplat_dr.data.types import model_inputs
 from usplat_dr.training import Trainer
 from usplat_dr.training.checkpoints import load_model
@@ -25,10 +25,8 @@ pytestmark = pytest.mark.usefixtures("restore_threads")
 
 @pytest.fixture(scope="module")
 def synth_root(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("synth_budget")
-    synthesize(root, scenes=2, frames=10, resolution=(32, 32), seed=5, spp=4, stage="train",
-               previews=0, progress=False, kinds=("indoor",))
-    return root
+    # the suite's small training set (or, without Mitsuba, its pre-rendered copy)
+    return synthetic_set("trainer", tmp_path_factory.mktemp("synth_budget"))
 
 
 def config(root: Path, out: Path, steps: int, *overrides: str, name="synthetic_tiny_budget.yaml"):

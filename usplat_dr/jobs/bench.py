@@ -37,12 +37,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import drjit as dr
 import torch
 from torch.utils.data import default_collate
 from tqdm import tqdm
 
-from usplat_dr.backend import require_llvm
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation import depth_metrics, nan_mean, synthetic_indices
@@ -56,6 +54,7 @@ from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS
 from usplat_dr.render.prune import PRUNES
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import BASE, load, load_models, shipped_checkpoints
+from usplat_dr.training.distributed import set_threads
 
 log = logging.getLogger(__name__)
 
@@ -544,10 +543,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--configs none measures the --checkpoint models only: give at least "
                          "one --checkpoint PRESET:VARIANT:TAG=PATH")
     if args.threads:
-        torch.set_num_threads(args.threads)
-        if args.device == "cpu":
-            require_llvm()  # Dr.Jit's target pinned before its first kernel
-            dr.set_thread_count(args.threads)
+        set_threads(args.threads, args.device)
     run_bench(args.out, "quick" if args.quick else "full", args.configs, args.render_sizes,
               args.prunes, device=args.device, jobs=args.jobs, fractions=args.fractions,
               rank_by=args.rank_by, splits=args.splits, checkpoints=dict(args.checkpoints))

@@ -51,11 +51,16 @@ def setup_distributed(device: str, threads: int | None = None
     # of a multi-node run) so they do not oversubscribe them.
     ranks_here = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
     threads = threads or max(1, (os.cpu_count() or 1) // ranks_here)
+    set_threads(threads, device)
+    return rank, world, dev
+
+
+def set_threads(threads: int, device: str = "cpu") -> None:
+    """torch's intra-op threads, and on the CPU Dr.Jit's LLVM pool, to ``threads``."""
     torch.set_num_threads(threads)
     if device == "cpu":
         require_llvm()  # pins Dr.Jit's target now (USPLAT_PORTABLE), before any kernel
         dr.set_thread_count(threads)
-    return rank, world, dev
 
 
 def rng_state() -> dict:
