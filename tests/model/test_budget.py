@@ -284,9 +284,13 @@ def test_gradients_reach_the_importance_head():
     grads = {n: p.grad for n, p in model.importance.named_parameters()}
     # zero-initialised last layers: their own gradients are non-zero at once (the hidden
     # activations are not zero); the layers before them get theirs one step later
-    for name in ("conv.2.weight", "conv.2.bias", "adapt_mlp.2.weight", "adapt_mlp.2.bias"):
+    for name in ("conv.2.weight", "adapt_mlp.2.weight", "adapt_mlp.2.bias"):
         assert grads[name] is not None and grads[name].abs().sum() > 0, name
         assert torch.isfinite(grads[name]).all(), name
+    # The score's bias shifts every score alike, and the relaxed top-K's threshold moves with
+    # the scores (a budget of K is kept): its gradient is 0 but for float32 rounding (~1e-10,
+    # whose sign and size follow the thread count), against ~0.1 for the weights.
+    assert grads["conv.2.bias"].abs().sum() < 1e-6 * grads["conv.2.weight"].abs().sum()
 
 
 def test_budget_arguments_are_checked_before_the_networks_run():
