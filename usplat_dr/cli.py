@@ -11,7 +11,7 @@ import importlib
 import logging
 import sys
 
-from usplat_dr import __version__, portable
+from usplat_dr import __version__, _cpus, portable
 
 #: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
 COMMANDS = {
@@ -80,6 +80,24 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         return text
 
 
+#: Commands that compute nothing themselves (``doctor`` reports the thread choice instead).
+NO_THREADS = {"doctor"}
+
+
+def use_free_cores() -> None:
+    """torch's and Dr.Jit's threads: one per core other processes leave free, or
+    ``USPLAT_THREADS`` (``usplat_dr._cpus``); commands with a ``--threads`` option or a
+    ``threads`` setting set theirs after this."""
+    choice = _cpus.choose()
+    import drjit as dr  # not at the top: ``usplat --help`` stays fast
+    import torch
+
+    torch.set_num_threads(choice.threads)
+    if dr.has_backend(dr.JitBackend.LLVM):
+        dr.set_thread_count(choice.threads)
+    logging.getLogger("usplat_dr").info("%s", choice.line())
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # Same numbers from the same command on every AVX2 CPU (before torch is imported).
@@ -106,6 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO,
                         format="%(message)s")
     try:
+        if args.command not in NO_THREADS:
+            use_free_cores()
         return args.run(args)
     except (*USER_ERRORS, OSError) as e:
         if args.debug or not is_user_error(e):

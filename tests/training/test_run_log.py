@@ -9,7 +9,7 @@ import pytest
 from usplat_dr.training import run_log as run_log_module
 from usplat_dr.training.run_log import DiskFull, RunLog, curve, read_metrics
 
-FIELDS = ["step", "loss", "psnr", "lpips", "skipped", "steps_per_s", "time_s"]
+FIELDS = ["step", "loss", "psnr", "lpips", "skipped", "steps_per_s", "time_s", "cpu_s"]
 
 
 def stats(step: int) -> dict:
@@ -32,6 +32,18 @@ def test_rows_at_the_cadence_and_at_the_last_step(tmp_path):
         log.log(1, {}, skipped=1)  # no good step yet: nothing to write
         log.log(2, stats(2), skipped=1)
     assert [(r["step"], r["skipped"]) for r in read_metrics(tmp_path / "b")] == [("2", "1")]
+
+
+def test_rows_carry_wall_and_process_cpu_time(tmp_path):
+    with RunLog(tmp_path, FIELDS, 0, 2, progress=False) as log:
+        log.log(1, stats(1), skipped=0)
+        sum(range(2_000_000))  # some CPU work between the rows
+        log.log(2, stats(2), skipped=0)
+    rows = read_metrics(tmp_path)
+    cpu = [float(r["cpu_s"]) for r in rows]
+    # process_time counts this process's CPU time since the log opened: it grows by the loop's
+    # CPU time (tens of ms; the counter's resolution is far finer)
+    assert 0 <= cpu[0] < cpu[1]
 
 
 def test_a_resumed_run_keeps_the_rows_up_to_its_step(tmp_path):

@@ -6,7 +6,7 @@ import os
 import platform
 import sys
 
-from usplat_dr import _llvm, _openmp, portable
+from usplat_dr import _cpus, _llvm, _openmp, portable
 
 
 def _version(module: str) -> str | None:
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace | None = None) -> int:
     except Exception as e:  # noqa: BLE001
         print(f"  unavailable ({e})")
 
-    _numerics("llvm" in backends)
+    problems += _numerics("llvm" in backends)
     _core_keeper()
 
     if problems:
@@ -97,9 +97,11 @@ def run(args: argparse.Namespace | None = None) -> int:
     return 0
 
 
-def _numerics(llvm: bool) -> None:
+def _numerics(llvm: bool) -> list[str]:
     """Portable numerics (``usplat_dr.portable``) and the OpenMP spin (``usplat_dr._openmp``),
-    as this process has them (``usplat`` turns portable numerics on before torch loads)."""
+    as this process has them (``usplat`` turns portable numerics on before torch loads), and
+    the thread count ``usplat``'s commands would start with (``usplat_dr._cpus``); returns
+    problems to report."""
     pins = portable.describe()
     print("\nNumerics and threads")
     print(f"  portable numerics: {'on' if pins['portable'] else 'off'} ({portable.ENV_VAR}="
@@ -112,6 +114,13 @@ def _numerics(llvm: bool) -> None:
         pinned = "pinned" if pins["drjit_target"] else "not pinned: the host CPU's"
         print(f"  Dr.Jit LLVM target: {target[0]}, {target[2]} float lanes ({pinned})")
     print(f"  OpenMP spin: {_openmp.describe()}")
+    try:
+        choice = _cpus.choose()
+        print(f"  usplat's commands start with {choice.line()}")
+    except ValueError as e:
+        print(f"  threads: {e}")
+        return [str(e)]
+    return []
 
 
 def _core_keeper() -> None:

@@ -130,7 +130,8 @@ RANGES = {
     # more threads than CPUs only time-slice them (and torch/OpenMP would start them all)
     "threads": (lambda v: v is None or 1 <= v <= (os.cpu_count() or 1),
                 (f"must be >= 1 and at most this machine's CPUs (os.cpu_count() = "
-                 f"{os.cpu_count()}); or null: cores / ranks")),
+                 f"{os.cpu_count()}); or null: one per free core (USPLAT_THREADS), or cores / "
+                 f"ranks under torchrun")),
     "data_loader.batch_size": (lambda v: v >= 1, "must be >= 1"),
     "data_loader.num_workers": (lambda v: v >= 0, "must be >= 0"),
     "keep_cores_awake": (lambda v: v in (True, False, None, "auto"), "must be true, false or auto"),
@@ -180,7 +181,9 @@ class RootCfg:
     seed: int = 0
     device: str = "cpu"  # cuda: torch on the GPU and the rasteriser on Dr.Jit's CUDA backend
     output_dir: str = "outputs/train"
-    threads: int | None = None  # torch and Dr.Jit threads per process (None: cores / ranks)
+    # torch and Dr.Jit threads per process (None: one per core that other processes leave free,
+    # usplat_dr._cpus; cores / ranks under torchrun)
+    threads: int | None = None
     # idle-priority spinners that keep the cores from halting between the run's threads
     # (usplat_dr.training.cores); auto (or null): on for a CPU run whose threads cover all of
     # its cores on a VM whose idle cores a probe at start finds slow to wake

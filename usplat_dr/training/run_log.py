@@ -128,7 +128,7 @@ class RunLog:
         self.board = None  # torch.utils.tensorboard.SummaryWriter, when installed
         self.bar: tqdm | None = None
         self._closes = contextlib.ExitStack()
-        self._t0 = time.perf_counter()
+        self._t0, self._c0 = time.perf_counter(), time.process_time()
 
     def __enter__(self) -> "RunLog":  # noqa: PYI034 (typing.Self needs Python 3.11)
         with contextlib.ExitStack() as opened:  # what opened before a failure is closed
@@ -147,7 +147,7 @@ class RunLog:
                                 dynamic_ncols=True)
                 opened.callback(self.bar.close)
             self._closes = opened.pop_all()
-        self._t0 = time.perf_counter()
+        self._t0, self._c0 = time.perf_counter(), time.process_time()
         return self
 
     def __exit__(self, *exc) -> None:
@@ -156,12 +156,14 @@ class RunLog:
     def log(self, step: int, stats: dict, skipped: int) -> None:
         """After step ``step`` (counted from 1): every ``log_every`` steps and at the last, a
         row of ``metrics.csv`` and TensorBoard with ``stats`` (the last good step's; nothing
-        before there is one), ``skipped`` and the rate and time since entering; the bar."""
+        before there is one), ``skipped``, the rate and the wall and process CPU time (all of
+        the process's threads) since entering; the bar."""
         elapsed = time.perf_counter() - self._t0
         rate = (step - self.start) / max(elapsed, 1e-9)
         if stats and (step % self.log_every == 0 or step == self.steps):
             self.metrics.write({"step": step, **stats, "skipped": skipped,
-                                "steps_per_s": rate, "time_s": elapsed})
+                                "steps_per_s": rate, "time_s": elapsed,
+                                "cpu_s": time.process_time() - self._c0})
             if self.board is not None:
                 for key, value in stats.items():
                     self.board.add_scalar(f"train/{key}", value, step)

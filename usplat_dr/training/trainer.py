@@ -656,7 +656,7 @@ class Trainer:
     #: The columns of metrics.csv.
     METRICS = ("step", "loss", "mse", "lpips", "depth", "target_depth", "budget", "full_mse",
                "psnr", "grad_norm",
-               *GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s")
+               *GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s", "cpu_s")
 
     def fit(self) -> dict:
         """Train to ``train.steps`` (or a signal), logging, checkpointing and validating

@@ -1,0 +1,141 @@
+"""How many threads a run should use: the cores it may run on (affinity and a cgroup CPU
+quota) less the cores other processes keep busy right now.
+
+On a shared machine a run that starts one thread per core competes with the other processes
+for every core, and its threads wait for each other at every parallel operation (torch's
+OpenMP barriers, Dr.Jit's kernel blocks): with one other CPU-bound process on 2 cores the
+demo took several times its quiet time where one thread per free core takes about twice
+(train/bench/README.md, "On a shared machine"). So ``usplat``'s commands and ``usplat train``
+(``threads: null``) start one thread per *free* core, measured over a short sample of
+``/proc/stat`` at start.
+
+``USPLAT_THREADS`` decides instead: a number (that many threads), ``all`` (one per allowed
+core, whatever else runs) or ``auto`` (the default). The thread count changes the order of
+float sums, so for bit-for-bit repeatable numbers set a number (docs/reproducibility.md).
+
+This module has no third-party imports.
+"""
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+ENV_VAR = "USPLAT_THREADS"
+#: How long ``busy_cores`` samples the CPUs' counters (seconds), and how long ``choose``
+#: reuses a sample (a test suite or a demo builds many runs in one process).
+SAMPLE_S = 0.3
+REUSE_S = 60.0
+_last: tuple[float, float | None] | None = None  # (time.monotonic(), busy_cores())
+#: Fields of a ``/proc/stat`` cpu line that count as busy (of: user nice system idle iowait irq
+#: softirq steal guest guest_nice; guest time is already inside user): steal is time the
+#: hypervisor gave to someone else, as unavailable to us as another process's.
+_BUSY = (0, 1, 2, 5, 6, 7)
+
+
+@dataclass(frozen=True)
+class Choice:
+    threads: int
+    allowed: int  # cores this process may run on
+    busy: float | None  # cores other processes kept busy during the sample (None: not sampled)
+    why: str
+
+    def line(self) -> str:
+        """One log line, e.g. ``threads: 1 (2 cores allowed, 1.0 busy with other processes;
+        USPLAT_THREADS=auto)``."""
+        return f"threads: {self.threads} ({self.why})"
+
+
+def allowed_cores() -> int:
+    """Cores this process may use: its CPU affinity, capped by a cgroup v2 CPU quota
+    (``cpu.max``, e.g. a container's ``--cpus``), at least 1."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    quota = cgroup_quota()
+    if quota is not None:
+        n = min(n, max(1, math.ceil(quota - 1e-6)))
+    return max(1, n)
+
+
+def cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
+    """The cgroup v2 CPU quota in cores (``cpu.max``: ``quota period``), or None (unlimited
+    or not readable)."""
+    try:
+        quota, period = (root / "cpu.max").read_text().split()[:2]
+    except (OSError, ValueError):
+        return None
+    if quota == "max":
+        return None
+    try:
+        return int(quota) / int(period)
+    except (ValueError, ZeroDivisionError):
+        return None
+
+
+def _cpu_counters(cpus: set[int], stat: Path) -> tuple[int, int]:
+    """(busy, total) jiffies summed over ``cpus`` from ``/proc/stat``."""
+    busy = total = 0
+    for line in stat.read_text().splitlines():
+        name, *fields = line.split()
+        if not name.startswith("cpu") or name == "cpu":
+            continue
+        if not name[3:].isdigit() or int(name[3:]) not in cpus:
+            continue
+        values = [int(v) for v in fields[:8]]
+        busy += sum(values[i] for i in _BUSY if i < len(values))
+        total += sum(values)
+    return busy, total
+
+
+def busy_cores(seconds: float = SAMPLE_S, stat: Path = Path("/proc/stat")) -> float | None:
+    """Cores that *other* processes kept busy over ``seconds``, on the CPUs this process may
+    use: their busy share from ``/proc/stat`` times their number, less this process's own
+    CPU time over the sample. None where ``/proc/stat`` cannot be read (not Linux)."""
+    try:
+        cpus = os.sched_getaffinity(0)
+        b0, t0 = _cpu_counters(cpus, stat)
+        own0, w0 = time.process_time(), time.perf_counter()
+        time.sleep(seconds)
+        b1, t1 = _cpu_counters(cpus, stat)
+        own = (time.process_time() - own0) / max(time.perf_counter() - w0, 1e-9)
+    except (AttributeError, OSError, ValueError):
+        return None
+    if t1 <= t0:
+        return None
+    return max(0.0, len(cpus) * (b1 - b0) / (t1 - t0) - own)
+
+
+def recent_busy_cores() -> float | None:
+    """``busy_cores()``, sampled at most once every ``REUSE_S`` seconds in a process."""
+    global _last
+    if _last is None or time.monotonic() - _last[0] > REUSE_S:
+        _last = (time.monotonic(), busy_cores())
+    return _last[1]
+
+
+def choose(setting: str | None = None, measure=recent_busy_cores) -> Choice:
+    """The thread count for a run: ``setting`` (default ``$USPLAT_THREADS``, else ``auto``):
+    a number, ``all``, or ``auto`` (allowed cores less busy ones, rounded, at least 1).
+    A ``ValueError`` names the variable for anything else."""
+    raw = setting if setting is not None else os.environ.get(ENV_VAR, "auto")
+    value = str(raw).strip().lower()
+    allowed = allowed_cores()
+    if value.isdigit() and int(value) >= 1:
+        return Choice(int(value), allowed, None, f"{ENV_VAR}={value}")
+    if value == "all":
+        return Choice(allowed, allowed, None, f"{allowed} core(s) allowed; {ENV_VAR}=all")
+    if value not in ("auto", ""):
+        raise ValueError(f"{ENV_VAR} must be a number >= 1, 'all' or 'auto', got {raw!r}")
+    busy = measure() if allowed > 1 else None
+    if busy is None:
+        return Choice(allowed, allowed, None, f"{allowed} core(s) allowed, load not sampled"
+                      if allowed > 1 else "1 core allowed")
+    threads = max(1, min(allowed, math.floor(allowed - busy + 0.5)))
+    return Choice(threads, allowed, busy, f"{allowed} core(s) allowed, {busy:.1f} busy with "
+                                          f"other processes; {ENV_VAR}=auto")
