@@ -19,7 +19,7 @@ PACKAGE = ROOT / "usplat_dr"
 #: import modules of its own part and of lower layers. ``model`` and ``data`` share a layer
 #: but may not import each other (the model never sees the dataset, the data never the model).
 LAYERS = {
-    "_llvm": 0, "_openmp": 0, "portable": 0,
+    "_llvm": 0, "_threads": 0, "portable": 0,
     "": 1, "backend": 1, "config": 1, "io": 1,  # "": ``usplat_dr`` itself (the libLLVM choice)
     "geometry": 2,
     "render": 3,
@@ -284,7 +284,7 @@ def test_scripts_use_only_the_public_library():
     ("def f():\n    from usplat_dr.render.bridge import _value_flags",
      "usplat_dr.render.bridge._value_flags"),
     ("from usplat_dr import _llvm", "usplat_dr._llvm"),
-    ("import usplat_dr._openmp", "usplat_dr._openmp"),
+    ("import usplat_dr._threads", "usplat_dr._threads"),
     ("from usplat_dr.render import bridge\nbridge._value_flags([], 1, 2)",
      "usplat_dr.render.bridge..._value_flags"),
     ("import usplat_dr.render.bridge\nusplat_dr.render.bridge._wrapped",

@@ -11,7 +11,7 @@ import importlib
 import logging
 import sys
 
-from usplat_dr import __version__, _cpus, portable
+from usplat_dr import __version__, _threads, portable
 
 #: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
 COMMANDS = {
@@ -86,9 +86,9 @@ NO_THREADS = {"doctor"}
 
 def use_free_cores() -> None:
     """torch's and Dr.Jit's threads: one per core other processes leave free, or
-    ``USPLAT_THREADS`` (``usplat_dr._cpus``); commands with a ``--threads`` option or a
+    ``USPLAT_THREADS`` (``usplat_dr._threads``); commands with a ``--threads`` option or a
     ``threads`` setting set theirs after this."""
-    choice = _cpus.choose()
+    choice = _threads.choose()
     import drjit as dr  # not at the top: ``usplat --help`` stays fast
     import torch
 
@@ -98,10 +98,26 @@ def use_free_cores() -> None:
     logging.getLogger("usplat_dr").info("%s", choice.line())
 
 
+def asks_bfloat16(argv: list[str]) -> bool:
+    """Whether the command line asks for ``--precision bfloat16`` (read before the parser:
+    torch's pins must be decided before torch is imported).
+
+    Examples:
+        >>> asks_bfloat16(["eval", "--precision", "bfloat16"]), asks_bfloat16(["eval"])
+        (True, False)
+        >>> asks_bfloat16(["eval", "--precision=bfloat16"])
+        True
+    """
+    pairs = zip(argv, [*argv[1:], None], strict=True)
+    return "--precision=bfloat16" in argv or any(a == "--precision" and b == "bfloat16"
+                                                 for a, b in pairs)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    # Same numbers from the same command on every AVX2 CPU (before torch is imported).
-    portable.enable()
+    # Same numbers from the same command on every AVX2 CPU (before torch is imported); not
+    # torch's pins for bfloat16 inference (no portable numbers there, and 14x slower pinned)
+    portable.enable(torch_pins=not asks_bfloat16(argv))
     parser = argparse.ArgumentParser(prog="usplat", description="usplat-dr: UniqueSplat with a "
                                      "Dr.Jit Gaussian rasteriser")
     parser.add_argument("--version", action="version", version=f"usplat-dr {__version__}")

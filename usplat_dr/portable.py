@@ -41,11 +41,14 @@ def enabled() -> bool:
     return os.environ.get(ENV_VAR, "0") not in ("", "0", "false", "no")
 
 
-def enable() -> None:
+def enable(torch_pins: bool = True) -> None:
     """Turn portable numerics on for this process (``usplat``'s commands do): sets the
-    environment torch reads. Call before torch is imported to take effect there."""
+    environment torch reads. Call before torch is imported to take effect there.
+    ``torch_pins=False`` leaves torch, oneDNN and MKL free (Dr.Jit stays pinned): for bfloat16
+    inference, whose kernels differ between CPUs anyway and which oneDNN's AVX2 code runs
+    about 14x slower than float32 (train/bench/README.md, "bfloat16 inference")."""
     os.environ.setdefault(ENV_VAR, "1")
-    if enabled():
+    if enabled() and torch_pins:
         for key, value in TORCH_ENV.items():
             os.environ.setdefault(key, value)
 

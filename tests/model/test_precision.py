@@ -2,6 +2,7 @@
 renders stay close to float32's, training ignores it, and a bad value is an error."""
 
 import logging
+import os
 from pathlib import Path
 
 import pytest
@@ -108,12 +109,32 @@ def test_bad_inference_precision_names_the_setting(model):
         model.inference_precision = "float32"
 
 
-def test_bfloat16_under_portable_numerics_warns(monkeypatch, caplog):
-    # The portable pins cap oneDNN at AVX2, which has no bfloat16 instructions: usplat eval
-    # says so rather than running 14x slower in silence.
+def test_bfloat16_with_onednn_capped_at_avx2_warns(monkeypatch, caplog):
+    # oneDNN capped at AVX2 has no bfloat16 instructions: usplat eval says so rather than
+    # running 14x slower in silence (usplat leaves the cap off for bfloat16; a user may set it)
     from usplat_dr.jobs.evaluate import warn_slow_bfloat16
 
-    monkeypatch.setenv("USPLAT_PORTABLE", "1")
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
     with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.evaluate"):
         warn_slow_bfloat16()
-    assert "USPLAT_PORTABLE=0" in caplog.text
+    assert "Unset it for the fast path" in caplog.text
+
+
+def test_usplat_leaves_torch_unpinned_for_bfloat16_only(monkeypatch):
+    # torch's pins are read when torch loads, so the decision is made from the command line
+    # before it: a fresh interpreter per case, with none of the pins in its environment.
+    import subprocess
+    import sys
+
+    from usplat_dr import portable
+
+    env = {k: v for k, v in os.environ.items() if k not in portable.TORCH_ENV
+           and k != portable.ENV_VAR}
+    code = ("import os, sys; from usplat_dr import cli; from usplat_dr import portable; "
+            "portable.enable(torch_pins=not cli.asks_bfloat16(sys.argv[1:])); "
+            "print(os.environ.get('ONEDNN_MAX_CPU_ISA'), os.environ.get('USPLAT_PORTABLE'))")
+    for argv, expected in ((["eval", "--precision", "bfloat16"], "None 1"),
+                           (["eval", "--precision=float32"], "AVX2 1"), (["eval"], "AVX2 1")):
+        out = subprocess.run([sys.executable, "-c", code, *argv], env=env, check=True,
+                             capture_output=True, text=True).stdout.split("\n")[-2]
+        assert out == expected, argv

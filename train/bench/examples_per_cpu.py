@@ -2,11 +2,12 @@
 (``synthetic_tiny_depth.yaml``, variant baseline, 64x64, 2 context + 4 target views) under
 different process shapes: threads per process and scenes per step (``data_loader.batch_size``).
 
-An *arm* is named ``t<threads>b<batch>`` with an optional ``lr<value>``, e.g. ``t2b1`` (two
-threads, one scene a step: the recipe as ``usplat train`` runs it by default on a 2-core
-machine) or ``t1b4lr2e-3``. An *example* is one training scene with its context pair and
-target views; CPU time is the process's (every thread, spinning included), which is what a
-machine's cores give to the run.
+An *arm* is named ``t<threads>b<batch>`` with an optional ``lr<value>`` and ``p`` (portable
+numerics, ``usplat``'s default: torch and Dr.Jit pinned to AVX2; without it, this benchmark's
+processes leave them free), e.g. ``t2b1`` (two threads, one scene a step: the recipe as ``usplat
+train`` ran it by default on a 2-core machine) or ``t1b4lr2e-3``. An *example* is one training
+scene with its context pair and target views; CPU time is the process's (every thread, spinning
+included), which is what a machine's cores give to the run.
 
     # 1. examples per CPU-second, arms interleaved step by step in one process per thread count
     python train/bench/examples_per_cpu.py throughput --data outputs/big/train480 \\
@@ -15,8 +16,8 @@ machine's cores give to the run.
     python train/bench/examples_per_cpu.py train --data outputs/big/train480 --arm t1b4 \\
         --steps 2000 --out outputs/epc
     # 3. the kept checkpoints on held-out scenes, against each run's CPU time: a table and chart
-    python train/bench/examples_per_cpu.py chart --runs outputs/epc --eval-data outputs/big/test2000 \\
-        --baseline t2b1 --out train/bench/examples_per_cpu
+    python train/bench/examples_per_cpu.py chart --runs outputs/epc \\
+        --eval-data outputs/big/test2000 --baseline t2b1 --out train/bench/examples_per_cpu
 
 ``train`` resumes a killed run from its last checkpoint (``cpu_s`` in metrics.csv then counts
 from the resume; ``chart`` adds the CPU time of the steps before it, read from the kept
@@ -26,9 +27,11 @@ checkpoints' rows). Results: train/bench/README.md, "Examples per CPU-second".
 import argparse
 import csv
 import json
+import os
 import re
 import shutil
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -36,19 +39,20 @@ from pathlib import Path
 import torch  # users' order: torch first (usplat_dr then cannot shorten OpenMP's spin)
 
 import usplat_dr  # noqa: F401  (libLLVM before drjit)
+from usplat_dr import portable
 
 RECIPE = "synthetic_tiny_depth.yaml"
-ARM = re.compile(r"^t(?P<threads>\d+)b(?P<batch>\d+)(?:lr(?P<lr>[0-9.eE+-]+))?$")
+ARM = re.compile(r"^t(?P<threads>\d+)b(?P<batch>\d+)(?:lr(?P<lr>[0-9.eE+-]+?))?(?P<p>p)?$")
 
 
 def parse_arm(name: str) -> dict:
-    """``t1b4lr2e-3`` -> threads 1, batch 4, lr 0.002 (None: the recipe's)."""
+    """``t1b4lr2e-3`` -> threads 1, batch 4, lr 0.002 (None: the recipe's), not portable."""
     m = ARM.match(name)
     if not m:
         raise argparse.ArgumentTypeError(
             f"arm {name!r} is not t<threads>b<batch>[lr<value>], e.g. t2b1 or t1b4lr2e-3")
     return {"name": name, "threads": int(m["threads"]), "batch": int(m["batch"]),
-            "lr": float(m["lr"]) if m["lr"] else None}
+            "lr": float(m["lr"]) if m["lr"] else None, "portable": bool(m["p"])}
 
 
 def overrides(arm: dict, data: str, out: str, steps: int, seed: int) -> list[str]:
@@ -64,19 +68,21 @@ def overrides(arm: dict, data: str, out: str, steps: int, seed: int) -> list[str
 
 
 def throughput(args) -> None:
-    """Median wall and CPU time per step of each arm; arms of one thread count share a process
-    (interleaved step by step: a busy machine slows them alike), one process per count."""
+    """Median wall and CPU time per step of each arm; arms of one thread count and numerics
+    share a process (interleaved step by step: a busy machine slows them alike)."""
     arms = [parse_arm(a) for a in args.arms]
-    by_threads: dict[int, list] = {}
+    groups: dict[tuple, list] = {}
     for a in arms:
-        by_threads.setdefault(a["threads"], []).append(a)
+        groups.setdefault((a["threads"], a["portable"]), []).append(a)
     rows = []
-    for threads, group in by_threads.items():
-        import subprocess
-
+    for group in groups.values():
+        env = {k: v for k, v in os.environ.items()
+               if k not in portable.TORCH_ENV and k != portable.ENV_VAR}
+        if group[0]["portable"]:  # what `usplat` sets before torch loads
+            env.update({portable.ENV_VAR: "1", **portable.TORCH_ENV})
         cmd = [sys.executable, __file__, "_throughput", "--data", args.data, "--steps",
                str(args.steps), "--arms", *[a["name"] for a in group]]
-        out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+        out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
         rows += [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     base = next((r for r in rows if r["arm"] == args.arms[0]), rows[0])
     print(f"{'arm':<12} {'wall ms':>8} {'CPU ms':>8} {'ex/CPU-s':>9} {'ex/wall-s':>10} "
@@ -150,7 +156,8 @@ def cpu_at_steps(run: Path) -> dict[int, float]:
     """Process CPU seconds at each logged step of ``run``'s metrics.csv, counted from step 0
     across resumes (a row whose ``cpu_s`` fell below the previous row's starts a new
     process: the CPU time before it is added)."""
-    rows = list(csv.DictReader(open(run / "metrics.csv", newline="")))
+    with open(run / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     out, offset, prev = {}, 0.0, 0.0
     for r in rows:
         if not r.get("cpu_s"):
@@ -175,7 +182,8 @@ def chart(args) -> None:
     points_file = out / "points.csv"
     done = {}
     if points_file.is_file():  # a rerun evaluates only new checkpoints
-        done = {(r["run"], int(r["step"])): r for r in csv.DictReader(open(points_file))}
+        with open(points_file, newline="") as f:
+            done = {(r["run"], int(r["step"])): r for r in csv.DictReader(f)}
     points = []
     for run in sorted(p for p in Path(args.runs).iterdir() if (p / "arm.json").is_file()):
         arm = json.loads((run / "arm.json").read_text())

@@ -29,7 +29,7 @@ def run(script: str, args: list[str], spin: str) -> str:
     env = dict(os.environ)
     env.pop("GOMP_SPINCOUNT", None)
     env.pop("OMP_WAIT_POLICY", None)
-    # usplat_dr sets GOMP_SPINCOUNT from this on import, before torch (usplat_dr/_openmp.py)
+    # usplat_dr sets GOMP_SPINCOUNT from this on import, before torch (usplat_dr/_threads.py)
     env["USPLAT_OMP_SPIN"] = "off" if spin == "default" else spin
     out = subprocess.run([sys.executable, str(HERE / script), *args], env=env,
                          capture_output=True, text=True, check=True)

@@ -470,8 +470,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=non_negative_int, default=0,
                    help="Mitsuba worker processes (0: auto)")
     p.add_argument("--threads", type=non_negative_int, default=0,
-                   help="CPU threads of torch and Dr.Jit for the measurements (0: their "
-                   "defaults, every core)")
+                   help="CPU threads of torch and Dr.Jit for the measurements (0: one per "
+                   "core other processes leave free, or USPLAT_THREADS)")
 
 
 def fractions_argument(text: str) -> tuple[float, ...]:

@@ -6,7 +6,7 @@ import os
 import platform
 import sys
 
-from usplat_dr import _cpus, _llvm, _openmp, portable
+from usplat_dr import _llvm, _threads, portable
 
 
 def _version(module: str) -> str | None:
@@ -98,9 +98,9 @@ def run(args: argparse.Namespace | None = None) -> int:
 
 
 def _numerics(llvm: bool) -> list[str]:
-    """Portable numerics (``usplat_dr.portable``) and the OpenMP spin (``usplat_dr._openmp``),
+    """Portable numerics (``usplat_dr.portable``) and the OpenMP spin (``usplat_dr._threads``),
     as this process has them (``usplat`` turns portable numerics on before torch loads), and
-    the thread count ``usplat``'s commands would start with (``usplat_dr._cpus``); returns
+    the thread count ``usplat``'s commands would start with (``usplat_dr._threads``); returns
     problems to report."""
     pins = portable.describe()
     print("\nNumerics and threads")
@@ -113,9 +113,9 @@ def _numerics(llvm: bool) -> list[str]:
     else:
         pinned = "pinned" if pins["drjit_target"] else "not pinned: the host CPU's"
         print(f"  Dr.Jit LLVM target: {target[0]}, {target[2]} float lanes ({pinned})")
-    print(f"  OpenMP spin: {_openmp.describe()}")
+    print(f"  OpenMP spin: {_threads.describe()}")
     try:
-        choice = _cpus.choose()
+        choice = _threads.choose()
         print(f"  usplat's commands start with {choice.line()}")
     except ValueError as e:
         print(f"  threads: {e}")

@@ -4,10 +4,10 @@ JSON, renders)."""
 import argparse
 import json
 import logging
+import os
 
 import torch
 
-from usplat_dr import portable
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.jobs.arguments import CHECKPOINT_HELP, add_budget_arguments, out_folder
@@ -46,12 +46,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def warn_slow_bfloat16() -> None:
     """bfloat16 pays on the CPU only with native bfloat16 instructions (AVX-512-BF16, AMX)
-    that oneDNN may use: the portable numerics cap oneDNN at AVX2, where the tiny model at
-    64x64 took 2.08 s per scene in bfloat16 against 0.15 s in float32 (0.07 s natively)."""
-    if portable.enabled():
-        log.warning("--precision bfloat16 with portable numerics (USPLAT_PORTABLE=1) runs "
-                    "oneDNN's AVX2 code, which has no bfloat16 instructions: about 14x slower "
-                    "than float32. Run with USPLAT_PORTABLE=0 for the fast path.")
+    that oneDNN may use: capped at AVX2 (the portable pin, which ``usplat`` leaves off for
+    bfloat16 unless the environment sets it), the tiny model at 64x64 took 2.08 s per scene in
+    bfloat16 against 0.15 s in float32 (0.07 s natively)."""
+    if os.environ.get("ONEDNN_MAX_CPU_ISA", "").upper() == "AVX2":
+        log.warning("--precision bfloat16 with ONEDNN_MAX_CPU_ISA=AVX2 runs oneDNN's AVX2 "
+                    "code, which has no bfloat16 instructions: about 14x slower than float32. "
+                    "Unset it for the fast path.")
     elif not _onednn_has_bfloat16():
         log.warning("--precision bfloat16: this CPU has no bfloat16 instructions oneDNN can "
                     "use; expect it to be slower than float32")

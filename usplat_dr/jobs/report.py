@@ -135,7 +135,8 @@ def shipped_lines(r: DemoResults) -> list[str]:
             (f"(b) and (c) were initialised from `{BASE}` (zero-initialised hypernetwork "
              f"outputs: they start exactly at it) and fine-tuned for the same steps, seed and "
              f"data as (a) continued, the control they are paired with. Time per scene: 2 "
-             f"context views in, Gaussians and renders for every target (CPU, 2 threads). "
+             f"context views in, Gaussians and renders for every target (CPU, "
+             f"{r.provenance.get('torch_threads', '?')} thread(s)). "
              f"LPIPS: unavailable (no VGG/LPIPS weight files in the demo). Training recipes "
              f"and data: `checkpoints/manifest.json`."), ""]
 

@@ -5,6 +5,7 @@ the tensors over zero-copy (DLPack) on the same device, so there is no host roun
 """
 
 import functools
+import logging
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -13,9 +14,12 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from usplat_dr import _threads
 from usplat_dr.backend import require_cuda, require_llvm
 from usplat_dr.render.pipeline import check_shapes, rasterize_drjit
 from usplat_dr.render.settings import RasterSettings
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -107,6 +111,18 @@ def _wrapped(image_shape: tuple[int, int], settings: RasterSettings):
     return render
 
 
+@functools.cache
+def _warn_spinning_openmp() -> None:
+    """Once per process, where torch was imported before ``usplat_dr`` and runs more than one
+    thread: its OpenMP workers then spin for milliseconds after each operation (libgomp's
+    default) on the cores Dr.Jit's threads need (``usplat_dr._threads``)."""
+    if torch.get_num_threads() > 1 and _threads.torch_came_first():
+        log.warning("torch was imported before usplat_dr, so its OpenMP threads spin for "
+                    "milliseconds after each operation on the cores the rasteriser needs "
+                    "(up to 2x slower at 2 threads): import usplat_dr before torch, or set "
+                    "GOMP_SPINCOUNT=30000 in the environment")
+
+
 def rasterize(
     extrinsics: Float[Tensor, "batch 4 4"],
     intrinsics: Float[Tensor, "batch 3 3"],
@@ -151,6 +167,7 @@ def rasterize(
         require_cuda()
     elif extrinsics.device.type == "cpu":
         require_llvm()
+        _warn_spinning_openmp()
     else:
         raise ValueError(f"tensors must be on a CPU or CUDA device, got {extrinsics.device}")
     b, g = means.shape[:2]

@@ -182,7 +182,7 @@ class RootCfg:
     device: str = "cpu"  # cuda: torch on the GPU and the rasteriser on Dr.Jit's CUDA backend
     output_dir: str = "outputs/train"
     # torch and Dr.Jit threads per process (None: one per core that other processes leave free,
-    # usplat_dr._cpus; cores / ranks under torchrun)
+    # usplat_dr._threads; cores / ranks under torchrun)
     threads: int | None = None
     # idle-priority spinners that keep the cores from halting between the run's threads
     # (usplat_dr.training.cores); auto (or null): on for a CPU run whose threads cover all of

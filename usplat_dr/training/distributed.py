@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from usplat_dr import _cpus
+from usplat_dr import _threads
 from usplat_dr.backend import require_llvm
 from usplat_dr.config import ConfigError
 
@@ -33,7 +33,7 @@ def setup_distributed(device: str, threads: int | None = None
                       ) -> tuple[int, int, torch.device]:
     """Rank, world size and device; initialises the process group under torchrun. CPU threads
     of torch and Dr.Jit per process: ``threads``; else, for one process, one per free core
-    (``usplat_dr._cpus.choose``: ``USPLAT_THREADS``, or the allowed cores less those other
+    (``usplat_dr._threads.choose``: ``USPLAT_THREADS``, or the allowed cores less those other
     processes keep busy), and under torchrun the allowed cores divided by this machine's
     ranks."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -55,9 +55,9 @@ def setup_distributed(device: str, threads: int | None = None
     ranks_here = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
     if not threads:
         if ranks_here > 1:  # the other ranks are this run's: share the cores, not the load
-            threads = max(1, _cpus.allowed_cores() // ranks_here)
+            threads = max(1, _threads.allowed_cores() // ranks_here)
         else:
-            choice = _cpus.choose()
+            choice = _threads.choose()
             log.info("%s", choice.line())
             threads = choice.threads
     set_threads(threads, device)

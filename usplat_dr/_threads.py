@@ -1,31 +1,84 @@
-"""How many threads a run should use: the cores it may run on (affinity and a cgroup CPU
-quota) less the cores other processes keep busy right now.
+"""The CPU threads of a run: how many, and how torch's OpenMP workers wait between operations.
+No third-party imports (``usplat_dr/__init__`` runs ``configure`` before torch may load).
 
-On a shared machine a run that starts one thread per core competes with the other processes
-for every core, and its threads wait for each other at every parallel operation (torch's
-OpenMP barriers, Dr.Jit's kernel blocks): with one other CPU-bound process on 2 cores the
-demo took several times its quiet time where one thread per free core takes about twice
-(train/bench/README.md, "On a shared machine"). So ``usplat``'s commands and ``usplat train``
-(``threads: null``) start one thread per *free* core, measured over a short sample of
-``/proc/stat`` at start.
+**How many** (``choose``): the cores this process may run on (affinity and a cgroup CPU quota)
+less the cores other processes keep busy right now. On a shared machine a run that starts one
+thread per core competes with the other processes for every core, and its threads wait for
+each other at every parallel operation (torch's OpenMP barriers, Dr.Jit's kernel blocks). So
+``usplat``'s commands and ``usplat train`` (``threads: null``) start one thread per *free*
+core, measured over a short sample of ``/proc/stat`` (train/bench/README.md, "On a shared
+machine"). ``USPLAT_THREADS`` decides instead: a number, ``all`` (one per allowed core,
+whatever else runs) or ``auto`` (the default). The thread count changes the order of float
+sums, so for bit-for-bit repeatable numbers set a number (docs/reproducibility.md).
 
-``USPLAT_THREADS`` decides instead: a number (that many threads), ``all`` (one per allowed
-core, whatever else runs) or ``auto`` (the default). The thread count changes the order of
-float sums, so for bit-for-bit repeatable numbers set a number (docs/reproducibility.md).
-
-This module has no third-party imports.
+**How they wait** (``configure``): torch's CPU wheels use GNU OpenMP, whose workers keep
+spinning on their cores after a parallel operation (libgomp's default: 300,000 iterations,
+milliseconds) before they sleep. The rasteriser runs on Dr.Jit's own thread pool, so right
+after a torch operation its threads shared the two cores with spinning torch workers: at 2
+threads a 64x64 forward+backward took 10.4 ms instead of 4.9, and the torch bridge added 6-13
+ms over the Dr.Jit entry instead of about 1 (train/bench/README.md, "OpenMP spinning";
+``train/bench/omp_spin.py``). A spin count of 30,000 kept torch's own operations as fast
+(training steps 0.93-0.99x), where ``OMP_WAIT_POLICY=PASSIVE`` (no spinning) made a training
+step 1.7x slower. libgomp reads ``GOMP_SPINCOUNT`` once, when it loads (with torch), so this
+runs on ``import usplat_dr``, which must come before ``import torch`` for it to apply (the
+rasteriser warns once where it did not). A value the user set for ``GOMP_SPINCOUNT`` or
+``OMP_WAIT_POLICY`` wins; ``USPLAT_OMP_SPIN`` chooses ours (a number, or ``off`` for
+libgomp's default).
 """
 
-import logging
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-log = logging.getLogger(__name__)
+SPIN_ENV_VAR = "USPLAT_OMP_SPIN"
+DEFAULT_SPIN = "30000"
 
-ENV_VAR = "USPLAT_THREADS"
+#: What the last ``configure`` did, in words (``describe``; ``usplat doctor``).
+outcome = "not configured (usplat_dr was not imported?)"
+
+
+def configure() -> str | None:
+    """Set ``GOMP_SPINCOUNT`` when nothing else decides it; return the value set (or None)."""
+    global outcome
+    choice = os.environ.get(SPIN_ENV_VAR, DEFAULT_SPIN).strip().lower()
+    if choice == "off":
+        outcome = f"libgomp's default ({SPIN_ENV_VAR}=off)"
+        return None
+    if "torch" in sys.modules:  # too late: torch (and libgomp) already loaded
+        outcome = "not set by usplat_dr: torch was imported before it"
+        return None
+    if "GOMP_SPINCOUNT" in os.environ or "OMP_WAIT_POLICY" in os.environ:
+        outcome = "set outside usplat_dr (it wins)"
+        return None
+    if not choice.isdigit():
+        raise ValueError(f"{SPIN_ENV_VAR} must be a non-negative integer or 'off', got "
+                         f"{os.environ[SPIN_ENV_VAR]!r}")
+    os.environ["GOMP_SPINCOUNT"] = choice
+    outcome = f"set by usplat_dr ({SPIN_ENV_VAR}, default {DEFAULT_SPIN})"
+    return choice
+
+
+def torch_came_first() -> bool:
+    """Whether torch (and libgomp) loaded before ``configure`` could set the spin, with
+    nothing else (the user's ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY``, or ``off``) deciding
+    it."""
+    return outcome.startswith("not set by usplat_dr: torch was imported before it")
+
+
+def describe() -> str:
+    """The OpenMP spin setting now and who chose it, e.g. ``GOMP_SPINCOUNT=30000,
+    OMP_WAIT_POLICY unset: set by usplat_dr (USPLAT_OMP_SPIN, default 30000)``."""
+    values = ", ".join(f"{k}={os.environ[k]}" if k in os.environ else f"{k} unset"
+                       for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY"))
+    return f"{values}: {outcome}"
+
+
+# ---- how many threads ----------------------------------------------------------------------
+
+THREADS_ENV_VAR = "USPLAT_THREADS"
 #: How long ``busy_cores`` samples the CPUs' counters (seconds), and how long ``choose``
 #: reuses a sample (a test suite or a demo builds many runs in one process).
 SAMPLE_S = 0.3
@@ -123,19 +176,19 @@ def choose(setting: str | None = None, measure=recent_busy_cores) -> Choice:
     """The thread count for a run: ``setting`` (default ``$USPLAT_THREADS``, else ``auto``):
     a number, ``all``, or ``auto`` (allowed cores less busy ones, rounded, at least 1).
     A ``ValueError`` names the variable for anything else."""
-    raw = setting if setting is not None else os.environ.get(ENV_VAR, "auto")
+    raw = setting if setting is not None else os.environ.get(THREADS_ENV_VAR, "auto")
     value = str(raw).strip().lower()
     allowed = allowed_cores()
     if value.isdigit() and int(value) >= 1:
-        return Choice(int(value), allowed, None, f"{ENV_VAR}={value}")
+        return Choice(int(value), allowed, None, f"{THREADS_ENV_VAR}={value}")
     if value == "all":
-        return Choice(allowed, allowed, None, f"{allowed} core(s) allowed; {ENV_VAR}=all")
+        return Choice(allowed, allowed, None, f"{allowed} core(s) allowed; {THREADS_ENV_VAR}=all")
     if value not in ("auto", ""):
-        raise ValueError(f"{ENV_VAR} must be a number >= 1, 'all' or 'auto', got {raw!r}")
+        raise ValueError(f"{THREADS_ENV_VAR} must be a number >= 1, 'all' or 'auto', got {raw!r}")
     busy = measure() if allowed > 1 else None
     if busy is None:
         return Choice(allowed, allowed, None, f"{allowed} core(s) allowed, load not sampled"
                       if allowed > 1 else "1 core allowed")
     threads = max(1, min(allowed, math.floor(allowed - busy + 0.5)))
     return Choice(threads, allowed, busy, f"{allowed} core(s) allowed, {busy:.1f} busy with "
-                                          f"other processes; {ENV_VAR}=auto")
+                                          f"other processes; {THREADS_ENV_VAR}=auto")
