@@ -36,14 +36,21 @@ def test_rows_at_the_cadence_and_at_the_last_step(tmp_path):
 
 def test_rows_carry_wall_and_process_cpu_time(tmp_path):
     with RunLog(tmp_path, FIELDS, 0, 2, progress=False) as log:
+        sum(range(2_000_000))  # some CPU work before each row
         log.log(1, stats(1), skipped=0)
-        sum(range(2_000_000))  # some CPU work between the rows
+        sum(range(2_000_000))
         log.log(2, stats(2), skipped=0)
     rows = read_metrics(tmp_path)
     cpu = [float(r["cpu_s"]) for r in rows]
     # process_time counts this process's CPU time since the log opened: it grows by the loop's
     # CPU time (tens of ms; the counter's resolution is far finer)
-    assert 0 <= cpu[0] < cpu[1]
+    assert 0 < cpu[0] < cpu[1]
+    # resumed from step 1: counting goes on from the kept row's cpu_s, not from 0 again
+    with RunLog(tmp_path, FIELDS, 1, 2, progress=False) as log:
+        log.log(2, stats(2), skipped=0)
+    rows = read_metrics(tmp_path)
+    assert [r["step"] for r in rows] == ["1", "2"]
+    assert float(rows[1]["cpu_s"]) >= cpu[0]  # from 0 it would be microseconds, below cpu[0]
 
 
 def test_a_resumed_run_keeps_the_rows_up_to_its_step(tmp_path):

@@ -19,9 +19,9 @@ included), which is what a machine's cores give to the run.
     python train/bench/examples_per_cpu.py chart --runs outputs/epc \\
         --eval-data outputs/big/test2000 --baseline t2b1 --out train/bench/examples_per_cpu
 
-``train`` resumes a killed run from its last checkpoint (``cpu_s`` in metrics.csv then counts
-from the resume; ``chart`` adds the CPU time of the steps before it, read from the kept
-checkpoints' rows). Results: train/bench/README.md, "Examples per CPU-second".
+``train`` resumes a killed run from its last checkpoint (``cpu_s`` in metrics.csv counts on
+from the checkpoint's row; the killed process's work past it is not counted). Results:
+train/bench/README.md, "Examples per CPU-second".
 """
 
 import argparse
@@ -153,21 +153,10 @@ def train_arm(args) -> None:
 
 
 def cpu_at_steps(run: Path) -> dict[int, float]:
-    """Process CPU seconds at each logged step of ``run``'s metrics.csv, counted from step 0
-    across resumes (a row whose ``cpu_s`` fell below the previous row's starts a new
-    process: the CPU time before it is added)."""
+    """Process CPU seconds of ``run`` at each logged step of its metrics.csv (``cpu_s``:
+    counted across resumes by the run log)."""
     with open(run / "metrics.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    out, offset, prev = {}, 0.0, 0.0
-    for r in rows:
-        if not r.get("cpu_s"):
-            continue
-        cpu = float(r["cpu_s"])
-        if cpu < prev:
-            offset += prev
-        prev = cpu
-        out[int(r["step"])] = offset + cpu
-    return out
+        return {int(r["step"]): float(r["cpu_s"]) for r in csv.DictReader(f) if r.get("cpu_s")}
 
 
 def chart(args) -> None:

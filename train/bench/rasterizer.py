@@ -13,6 +13,7 @@ difference from the torch entry is the bridge's cost. Prints Markdown tables.
     bash scripts/run.sh bench                 # all sizes
     bash scripts/run.sh bench --sizes 64 --runs 9
     bash scripts/run.sh bench --threads 1     # as training runs (threads=1)
+    python train/bench/rasterizer.py --torch-first   # users' order: torch imported first
     python train/bench/rasterizer.py --device cuda    # Dr.Jit's CUDA backend (a GPU machine)
 """
 
@@ -25,6 +26,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+if "--torch-first" in sys.argv:  # users' order; usplat_dr cannot then shorten OpenMP's spin
+    import torch
 
 import usplat_dr  # noqa: F401  (chooses libLLVM before drjit is imported)
 
@@ -178,6 +182,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="torch and Dr.Jit threads (default: theirs, one per core); 1 is "
                              "how training runs (threads=1)")
+    parser.add_argument("--torch-first", action="store_true",
+                        help="import torch before usplat_dr, as users write (the default "
+                        "imports usplat_dr first, which shortens torch's OpenMP spin)")
     args = parser.parse_args()
     if args.threads is not None:
         if args.threads < 1:
@@ -195,6 +202,8 @@ def main() -> None:
           f"{os.cpu_count()} CPUs, load {load[0]:.2f}; drjit {dr.__version__}, "
           f"torch {torch.__version__}, libLLVM {llvm}, "
           f"Dr.Jit threads {dr.thread_count()}, torch threads {torch.get_num_threads()}; "
+          f"import order {'torch first' if args.torch_first else 'usplat_dr first'}, "
+          f"GOMP_SPINCOUNT {os.environ.get('GOMP_SPINCOUNT', 'unset')}; "
           f"device {args.device}"
           + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda" else ""))
     print("\n| image | Gaussians | pairs | fwd ms (CPU ms) | fwd+bwd ms (CPU ms) | "

@@ -55,7 +55,7 @@ def step_times(data: str, steps: int) -> None:
     torch.manual_seed(0)
     trainer = Trainer(load_config(["synthetic_tiny_depth.yaml"], [
         f"dataset.roots=[{data}]", "output_dir=" + tempfile.mkdtemp(prefix="shared_bench_"),
-        "model.variant=baseline", "train.progress=false"]))
+        "model.variant=baseline", "train.progress=false", "threads=null"]))
     wall, cpu = [], []
     for i in range(steps + 3):
         batch = trainer.batches.next()

@@ -23,6 +23,9 @@ import statistics
 import sys
 import time
 
+if "--torch-first" in sys.argv:  # users' order; usplat_dr cannot then shorten OpenMP's spin
+    import torch  # noqa: F401
+
 import usplat_dr  # noqa: F401  (libLLVM before drjit)
 
 PHASES = ["data", "forward", "loss", "backward", "norms+clip", "optimiser", "total"]
@@ -149,6 +152,9 @@ def main(argv=None) -> int:
     p.add_argument("--awake", choices=["on", "off"],
                    help="one process of train/bench/cores.py: the current trainer with the "
                         "cores kept awake or not; medians per phase as JSON")
+    p.add_argument("--torch-first", action="store_true",
+                   help="import torch before usplat_dr, as users write (the default imports "
+                   "usplat_dr first, which shortens torch's OpenMP spin)")
     args = p.parse_args(argv)
     if args.awake:
         print(json.dumps(awake_medians(args)))

@@ -75,6 +75,9 @@ class MetricsLog:
     def __init__(self, path: Path, fields: list[str], step: int):
         self.path = path
         rows = self.kept_rows(path, step)
+        #: CPU seconds of the run up to its last kept row (``cpu_s``; 0 for a new run)
+        self.cpu_before = next((float(r["cpu_s"]) for r in reversed(rows) if r.get("cpu_s")),
+                               0.0)
         with disk_full_names(path):
             with atomic_open(path, "w") as f:
                 writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
@@ -148,6 +151,7 @@ class RunLog:
                 opened.callback(self.bar.close)
             self._closes = opened.pop_all()
         self._t0, self._c0 = time.perf_counter(), time.process_time()
+        self._c0 -= self.metrics.cpu_before  # cpu_s counts on from the kept rows
         return self
 
     def __exit__(self, *exc) -> None:
@@ -156,8 +160,10 @@ class RunLog:
     def log(self, step: int, stats: dict, skipped: int) -> None:
         """After step ``step`` (counted from 1): every ``log_every`` steps and at the last, a
         row of ``metrics.csv`` and TensorBoard with ``stats`` (the last good step's; nothing
-        before there is one), ``skipped``, the rate and the wall and process CPU time (all of
-        the process's threads) since entering; the bar."""
+        before there is one), ``skipped``, the rate and wall time since entering, and the
+        process CPU time of the run (all threads; a resumed run adds its kept rows' last
+        ``cpu_s``, so the work of a killed process past its checkpoint is not counted); the
+        bar."""
         elapsed = time.perf_counter() - self._t0
         rate = (step - self.start) / max(elapsed, 1e-9)
         if stats and (step % self.log_every == 0 or step == self.steps):
