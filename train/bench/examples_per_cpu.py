@@ -164,7 +164,9 @@ def chart(args) -> None:
     step: ``points.csv``, a chart ``psnr_per_cpu_hour.png`` and the table on stdout."""
     from usplat_dr.evaluation import evaluate, synthetic_indices
     from usplat_dr.training.checkpoints import load_model
+    from usplat_dr.training.distributed import set_threads
 
+    set_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     indices = synthetic_indices(args.eval_data, [args.split])
@@ -269,6 +271,7 @@ def main(argv=None) -> int:
     c.add_argument("--split", default="standard")
     c.add_argument("--baseline", default="t2b1", help="the arm the table compares against")
     c.add_argument("--out", required=True)
+    c.add_argument("--threads", type=int, default=1, help="threads for the evaluations")
     args = p.parse_args(argv)
     {"throughput": throughput, "_throughput": _throughput, "train": train_arm,
      "chart": chart}[args.command](args)

@@ -5,13 +5,15 @@ else runs (``USPLAT_THREADS=all``, what ``usplat`` did before 2026-11-26).
 
     python train/bench/shared_machine.py --data outputs/big/train480 --steps 30
     python train/bench/shared_machine.py --data outputs/big/train480 --demo   # + the demo (long)
+    python train/bench/shared_machine.py --data outputs/big/train480 --rounds 0 --demo busy:all
 
 Each measurement runs in a fresh process (``import torch`` first, as users write), started
 after the busy process has run for a second. The training step is the tiny (a) recipe's
 (``synthetic_tiny_depth.yaml``, 64x64, one scene of 2 context + 4 target views a step), median
-wall and process CPU time over ``--steps`` steps after 3 warm-up steps; the demo is ``usplat
-demo`` into a fresh folder (its synthetic data included), wall time. The table gives each
-busy time over the quiet time of the same setting and over the quiet ``auto`` time.
+wall and process CPU time over ``--steps`` steps after 3 warm-up steps, with ``threads: null``
+(the tiny configs set 1; this measures ``usplat``'s own choice); the demo is ``usplat demo``
+into a fresh folder (its synthetic data included), wall time. The table gives each time over
+the quiet ``auto`` one.
 Results: train/bench/README.md, "On a shared machine".
 """
 
@@ -76,13 +78,15 @@ def run_step(data: str, steps: int, setting: str) -> dict:
     return json.loads(next(line for line in out.splitlines() if line.startswith("{")))
 
 
-def run_demo(setting: str, budget: str) -> dict:
+def run_demo(setting: str, budget: str, root: Path = ROOT) -> dict:
+    """``usplat demo`` of the checkout ``root`` (its own ``.venv``; this one's by default)."""
     env = {**os.environ, "USPLAT_THREADS": setting}
-    usplat = Path(sys.executable).with_name("usplat")
+    usplat = (root / ".venv" / "bin" / "usplat" if root != ROOT
+              else Path(sys.executable).with_name("usplat"))
     with tempfile.TemporaryDirectory(prefix="shared_demo_") as out:
         t = time.perf_counter()
         args = [str(usplat), "demo", "--out", out] + (["--quick"] if budget == "quick" else [])
-        subprocess.run(args, env=env, check=True, capture_output=True, cwd=ROOT)
+        subprocess.run(args, env=env, check=True, capture_output=True, cwd=root)
         return {"wall_ms": (time.perf_counter() - t) * 1e3}
 
 
@@ -92,8 +96,13 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=30, help="timed training steps per run")
     p.add_argument("--rounds", type=int, default=2,
                    help="rounds of (quiet, busy) step measurements; medians over rounds")
-    p.add_argument("--demo", action="store_true", help="also time the demo (minutes each)")
+    p.add_argument("--demo", nargs="*", metavar="CONDITION:SETTING",
+                   help="also time the demo (minutes each) in these conditions, e.g. "
+                   "quiet:auto busy:auto busy:all (the default when given without values)")
     p.add_argument("--demo-budget", default="full", choices=["full", "quick"])
+    p.add_argument("--demo-root", type=Path, default=ROOT,
+                   help="the checkout whose demo runs (with its own .venv), e.g. an older "
+                   "commit for a before/after")
     p.add_argument("--settings", nargs="+", default=["auto", "all"],
                    help="USPLAT_THREADS values to compare")
     p.add_argument("--child-steps", type=int, help=argparse.SUPPRESS)
@@ -110,29 +119,27 @@ def main(argv=None) -> int:
                 with condition(cond):
                     r = run_step(args.data, args.steps, setting)
                 results.setdefault(("step", cond, setting), []).append(r)
-    if args.demo:
-        for cond in ("quiet", "busy"):
-            for setting in args.settings:
-                with condition(cond):
-                    r = run_demo(setting, args.demo_budget)
-                results.setdefault(("demo", cond, setting), []).append(r)
-    print("\n| what | USPLAT_THREADS | threads quiet / busy | quiet ms | busy ms (CPU ms) | "
-          "busy / quiet | busy / quiet auto |")
-    print("|---|---|---|---:|---:|---:|---:|")
+    if args.demo is not None:
+        for run in args.demo or ["quiet:auto", "busy:auto", "busy:all"]:
+            cond, setting = run.split(":")
+            with condition(cond):
+                r = run_demo(setting, args.demo_budget, args.demo_root.resolve())
+            print(f"demo {cond} {setting}: {r['wall_ms'] / 1e3:.0f} s", flush=True)
+            results.setdefault(("demo", cond, setting), []).append(r)
+    print("\n| what | USPLAT_THREADS | condition | threads | wall ms | CPU ms | over quiet auto |")
+    print("|---|---|---|---|---:|---:|---:|")
     for what in ("step", "demo"):
-        if (what, "quiet", args.settings[0]) not in results:
-            continue
-        ref = statistics.median(r["wall_ms"] for r in results[(what, "quiet", "auto")]) \
-            if (what, "quiet", "auto") in results else None
-        for setting in args.settings:
-            q, b = results[(what, "quiet", setting)], results[(what, "busy", setting)]
-            qw = statistics.median(r["wall_ms"] for r in q)
-            bw = statistics.median(r["wall_ms"] for r in b)
-            bc = (f" ({statistics.median(r['cpu_ms'] for r in b):.0f})" if "cpu_ms" in b[0]
-                  else "")
-            threads = (f"{q[0]['threads']} / {b[0]['threads']}" if "threads" in q[0] else "")
-            print(f"| {what} | {setting} | {threads} | {qw:.0f} | {bw:.0f}{bc} | {bw / qw:.2f} | "
-                  f"{bw / ref:.2f} |" if ref else "|")
+        ref = results.get((what, "quiet", "auto"))
+        ref_ms = statistics.median(r["wall_ms"] for r in ref) if ref else None
+        for (w, cond, setting), rs in results.items():
+            if w != what:
+                continue
+            wall = statistics.median(r["wall_ms"] for r in rs)
+            cpu = (f"{statistics.median(r['cpu_ms'] for r in rs):.0f}" if "cpu_ms" in rs[0]
+                   else "-")
+            threads = rs[0].get("threads", "-")
+            ratio = f"{wall / ref_ms:.2f}" if ref_ms else "-"
+            print(f"| {what} | {setting} | {cond} | {threads} | {wall:.0f} | {cpu} | {ratio} |")
     return 0
 
 
