@@ -46,6 +46,13 @@ def test_cpu_time_per_step_is_read_from_the_run_log(tmp_path):
     assert epc.cpu_at_steps(tmp_path) == {10: 2.0, 20: 4.1, 30: 6.2}
 
 
+def test_cpu_at_a_checkpoint_between_logged_steps():
+    logged = {10: 2.0, 20: 4.0, 30: 7.0}
+    assert epc.cpu_at(logged, 20) == 4.0
+    assert epc.cpu_at(logged, 25) == 5.5  # halfway between 4.0 and 7.0
+    assert epc.cpu_at(logged, 5) is None and epc.cpu_at(logged, 31) is None
+
+
 def test_table_gives_rates_and_differences_against_the_baseline(capsys):
     points = [{"run": "t2b1_seed0", "step": "100", "examples": "100", "cpu_s": "50",
                "psnr": "20.0"},

@@ -159,6 +159,24 @@ def cpu_at_steps(run: Path) -> dict[int, float]:
         return {int(r["step"]): float(r["cpu_s"]) for r in csv.DictReader(f) if r.get("cpu_s")}
 
 
+def cpu_at(logged: dict[int, float], step: int) -> float | None:
+    """CPU seconds at ``step``, linear between the logged steps around it (a checkpoint step
+    need not be a logging step); None outside them.
+
+    Examples:
+        >>> cpu_at({10: 2.0, 20: 4.0}, 15), cpu_at({10: 2.0, 20: 4.0}, 20), cpu_at({10: 2.0}, 5)
+        (3.0, 4.0, None)
+    """
+    if step in logged:
+        return logged[step]
+    below = [s for s in logged if s < step]
+    above = [s for s in logged if s > step]
+    if not below or not above:
+        return None
+    a, b = max(below), min(above)
+    return logged[a] + (logged[b] - logged[a]) * (step - a) / (b - a)
+
+
 def chart(args) -> None:
     """Each run's kept checkpoints on the held-out split, with the run's CPU time at their
     step: ``points.csv``, a chart ``psnr_per_cpu_hour.png`` and the table on stdout."""
@@ -182,7 +200,7 @@ def chart(args) -> None:
         for ckpt in sorted((run / "checkpoints").glob("step_*.ckpt")):
             step = int(ckpt.stem.split("_")[1])
             if (run.name, step) in done:
-                points.append(done[(run.name, step)])
+                points.append({**done[(run.name, step)], "cpu_s": cpu_at(cpu, step) or ""})
                 continue
             model, _ = load_model(ckpt)
             dataset = {"name": "synth", "roots": [args.eval_data], "image_shape": [64, 64]}
@@ -191,7 +209,7 @@ def chart(args) -> None:
                                progress=False)
             psnr = summary["splits"][args.split]["psnr"]
             points.append({"run": run.name, "arm": arm["name"], "step": step,
-                           "examples": step * arm["batch"], "cpu_s": cpu.get(step, ""),
+                           "examples": step * arm["batch"], "cpu_s": cpu_at(cpu, step) or "",
                            "psnr": psnr})
             print(json.dumps(points[-1]), flush=True)
     fields = ["run", "arm", "step", "examples", "cpu_s", "psnr"]
@@ -228,16 +246,24 @@ def plot(points: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(7.0, 4.4))
     for run in sorted({p["run"] for p in points}):
-        ps = sorted((float(p["cpu_s"]) / 3600, float(p["psnr"])) for p in points
-                    if p["run"] == run and p["cpu_s"] != "")
-        ax.plot([x for x, _ in ps], [y for _, y in ps], "o-", label=run)
+        mine = [p for p in points if p["run"] == run and p["cpu_s"] != ""]
+        if not mine:
+            continue
+        ps = sorted((float(p["cpu_s"]) / 3600, float(p["psnr"]), int(p["examples"]))
+                    for p in mine)
+        arm = parse_arm(mine[0]["arm"])
+        rate = ps[-1][2] / (ps[-1][0] * 3600)
+        label = (f"{run}: {arm['threads']} thread(s), {arm['batch']} scene(s)/step, "
+                 f"{rate:.2f} ex/CPU-s")
+        ax.plot([x for x, _, _ in ps], [y for _, y, _ in ps], "o--" if arm["threads"] > 1
+                else "o-", label=label)
     ax.set_xlabel("process CPU hours (all threads)")
     ax.set_ylabel("held-out PSNR (dB)")
     ax.set_title("tiny (a) from scratch: held-out PSNR against CPU time")
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=7)
     fig.tight_layout()
     tmp = path.with_name(path.stem + ".tmp.png")
     fig.savefig(tmp, dpi=120)
