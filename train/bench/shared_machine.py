@@ -29,6 +29,10 @@ from contextlib import contextmanager
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+#: One CPU-bound process, which asks Linux to kill it when its parent dies (prctl 1 =
+#: PR_SET_PDEATHSIG), so a killed benchmark leaves no busy process behind.
+BURN = ("import ctypes, signal, sys\nif sys.platform == 'linux':\n"
+        "    ctypes.CDLL(None).prctl(1, signal.SIGKILL)\nwhile True: pass")
 
 
 @contextmanager
@@ -36,7 +40,8 @@ def condition(name: str):
     """``busy``: one CPU-bound process for the block; ``quiet``: nothing."""
     burner = None
     if name == "busy":
-        burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        # the burner dies with this process, however it ends (Linux: PR_SET_PDEATHSIG)
+        burner = subprocess.Popen([sys.executable, "-c", BURN])
         time.sleep(1.0)
     try:
         yield
