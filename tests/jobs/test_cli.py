@@ -35,6 +35,8 @@ def test_doctor_reports_and_succeeds_here():
     # haswell, pinned, where the host has AVX2 and FMA; the host's target elsewhere
     assert re.search(r"Dr\.Jit LLVM target: \S+, \d+ float lanes \((not )?pinned", r.stdout)
     assert re.search(r"auto, a CPU run on \d+ core\(s\): core keeper (on|off): ", r.stdout)
+    # the thread count usplat's commands would start with, and why
+    assert re.search(r"usplat's commands start with threads: \d+ \(\d+ core\(s\) allowed", r.stdout)
 
 
 def test_doctor_exits_nonzero_with_advice_without_llvm(tmp_path):
