@@ -56,6 +56,9 @@ def training_config(data: Path, out: Path, budget: Budget, variant: str,
         f"output_dir={out}", f"model.variant={variant}", f"model.preset={preset}",
         f"train.steps={steps}", f"train.checkpoint_every={max(steps // 4, 1)}",
         f"train.validate_every={steps}", "train.log_every=5", *start,
+        # one job the user waits for: every free core (the config's one thread suits studies
+        # that run seeds side by side; here 2 threads fine-tuned in 27 s against 34 s)
+        "threads=null",
         "dataset.view_sampler.min_distance_between_context_views=3",
         "dataset.view_sampler.initial_min_distance_between_context_views=3",
         f"dataset.view_sampler.max_distance_between_context_views={gap_max}",
