@@ -113,6 +113,7 @@ def test_cgroup_quota(tmp_path, text, cores):
 
 def test_allowed_cores_is_the_affinity_capped_by_the_quota(monkeypatch):
     monkeypatch.setattr(_threads.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    assert _threads.affinity_cores() == 4
     monkeypatch.setattr(_threads, "cgroup_quota", lambda: None)
     assert _threads.allowed_cores() == 4
     monkeypatch.setattr(_threads, "cgroup_quota", lambda: 1.5)  # --cpus 1.5: two threads
@@ -124,11 +125,21 @@ def test_allowed_cores_is_the_affinity_capped_by_the_quota(monkeypatch):
 @pytest.mark.parametrize(("busy", "threads"), [(0.0, 4), (0.4, 4), (0.6, 3), (1.0, 3),
                                                (2.5, 2), (2.6, 1), (3.9, 1), (7.0, 1), (None, 4)])
 def test_auto_takes_the_free_cores(monkeypatch, busy, threads):
-    monkeypatch.setattr(_threads, "allowed_cores", lambda: 4)
+    monkeypatch.setattr(_threads, "affinity_cores", lambda: 4)
+    monkeypatch.setattr(_threads, "cgroup_quota", lambda: None)
     choice = _threads.choose("auto", measure=lambda: busy)
     assert choice.threads == threads
     assert choice.busy == busy
     assert "threads: " in choice.line()
+
+
+def test_under_a_quota_load_on_other_cpus_takes_nothing(monkeypatch):
+    # a container limited to 2 cores on a 16-CPU host: 10 CPUs busy elsewhere leave its 2; 15
+    # busy leave one free CPU
+    monkeypatch.setattr(_threads, "affinity_cores", lambda: 16)
+    monkeypatch.setattr(_threads, "cgroup_quota", lambda: 2.0)
+    assert _threads.choose("auto", measure=lambda: 10.0).threads == 2
+    assert _threads.choose("auto", measure=lambda: 15.0).threads == 1
 
 
 def test_a_number_or_all_decides_and_anything_else_names_the_variable(monkeypatch):

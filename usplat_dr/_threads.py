@@ -103,13 +103,18 @@ class Choice:
         return f"threads: {self.threads} ({self.why})"
 
 
+def affinity_cores() -> int:
+    """The CPUs this process may run on (its affinity; ``os.cpu_count()`` where unknown)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def allowed_cores() -> int:
     """Cores this process may use: its CPU affinity, capped by a cgroup v2 CPU quota
     (``cpu.max``, e.g. a container's ``--cpus``), at least 1."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        n = os.cpu_count() or 1
+    n = affinity_cores()
     quota = cgroup_quota()
     if quota is not None:
         n = min(n, max(1, math.ceil(quota - 1e-6)))
@@ -189,6 +194,10 @@ def choose(setting: str | None = None, measure=recent_busy_cores) -> Choice:
     if busy is None:
         return Choice(allowed, allowed, None, f"{allowed} core(s) allowed, load not sampled"
                       if allowed > 1 else "1 core allowed")
-    threads = max(1, min(allowed, math.floor(allowed - busy + 0.5)))
+    # the cores others leave free on the CPUs we may run on, at most our allowance: under a
+    # quota (a container's --cpus 2 on a 64-core host) other tenants' load on the other CPUs
+    # takes nothing from us
+    free = min(allowed, affinity_cores() - busy)
+    threads = max(1, min(allowed, math.floor(free + 0.5)))
     return Choice(threads, allowed, busy, f"{allowed} core(s) allowed, {busy:.1f} busy with "
                                           f"other processes; {THREADS_ENV_VAR}=auto")
