@@ -80,18 +80,21 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         return text
 
 
-#: Commands that compute nothing themselves (``doctor`` reports the thread choice instead).
-NO_THREADS = {"doctor"}
+#: Commands that choose no threads here: ``doctor`` reports the choice, and ``train``'s trainer
+#: makes it (its ``threads`` setting first; ``usplat_dr.training.distributed``).
+NO_THREADS = {"doctor", "train"}
 
 
 def use_free_cores() -> None:
     """torch's and Dr.Jit's threads: one per core other processes leave free, or
-    ``USPLAT_THREADS`` (``usplat_dr._threads``); commands with a ``--threads`` option or a
-    ``threads`` setting set theirs after this."""
+    ``USPLAT_THREADS`` (``usplat_dr._threads``); a command's ``--threads`` option sets its own
+    after this."""
     choice = _threads.choose()
     import drjit as dr  # not at the top: ``usplat --help`` stays fast
     import torch
 
+    # ``training.distributed.set_threads`` less its ``require_llvm``: a command that never
+    # renders on the CPU (a CUDA-only machine) must not fail for want of libLLVM here
     torch.set_num_threads(choice.threads)
     if dr.has_backend(dr.JitBackend.LLVM):
         dr.set_thread_count(choice.threads)

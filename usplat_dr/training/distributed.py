@@ -53,13 +53,16 @@ def setup_distributed(device: str, threads: int | None = None
     # Share the machine's cores between its ranks (torchrun's LOCAL_WORLD_SIZE; not all ranks
     # of a multi-node run) so they do not oversubscribe them.
     ranks_here = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))
-    if not threads:
-        if ranks_here > 1:  # the other ranks are this run's: share the cores, not the load
-            threads = max(1, _threads.allowed_cores() // ranks_here)
-        else:
-            choice = _threads.choose()
-            log.info("%s", choice.line())
-            threads = choice.threads
+    if threads:
+        why = "the threads setting"
+    elif ranks_here > 1:  # the other ranks are this run's: share the cores, not the load
+        threads = max(1, _threads.allowed_cores() // ranks_here)
+        why = f"{_threads.allowed_cores()} core(s) allowed / {ranks_here} ranks"
+    else:
+        choice = _threads.choose()
+        threads, why = choice.threads, choice.why
+    if device == "cpu":
+        log.info("threads: %d (%s)", threads, why)
     set_threads(threads, device)
     return rank, world, dev
 
