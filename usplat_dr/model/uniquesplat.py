@@ -515,6 +515,28 @@ class UniqueSplat(nn.Module):
         enabled = self.inference_precision == "bfloat16" and not self.training
         return torch.autocast(device.type, dtype=torch.bfloat16, enabled=enabled)
 
+    def view_delta_w(self, images: Float[Tensor, "b v 3 h w"],
+                     extrinsics: Float[Tensor, "b v 4 4"], intrinsics: Float[Tensor, "b v 3 3"],
+                     target_extrinsics: Float[Tensor, "b n 4 4"],
+                     target_intrinsics: Float[Tensor, "b n 3 3"],
+                     target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"]
+                     ) -> dict[str, LayerDelta]:
+        """The view-specific branch's Delta W for each target (layer name -> ``LayerDelta``
+        for B*N targets, target n of scene b at b N + n), what ``forward`` adds to W; ``{}``
+        for a model without the branch. ``forward(delta_w=...)`` takes it back (edited, or
+        as ``usplat_dr.evaluation.view_specificity`` does, averaged over a scene's targets)."""
+        if self.specific is None:
+            return {}
+        self.check_targets(images.shape[0], target_extrinsics, target_intrinsics, target_near,
+                           target_far)
+        return self._target_weights(images, extrinsics, intrinsics, target_extrinsics,
+                                    target_intrinsics, target_near, target_far)[1]
+
+    def generated_weights(self) -> dict[str, tuple[Tensor, Tensor]]:
+        """W, the view-agnostic weights of the target layers: layer name -> (weight, bias)
+        (the head's own convolutions for the baseline)."""
+        return dict(zip(self.cfg.target_layers, self.agnostic_weights()))
+
     def _target_weights(self, images: Float[Tensor, "b v 3 h w"],
                         extrinsics: Float[Tensor, "b v 4 4"],
                         intrinsics: Float[Tensor, "b v 3 3"],

@@ -222,11 +222,18 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
     if model.cfg.importance and _without_budget(cfg) == _without_budget(model.cfg):
         _load_adding_importance(model, path, cfg, sd)
         return
+    if cfg.variant != "baseline" and _without_budget(cfg) == _without_budget(model.cfg) and (
+            cfg.importance == model.cfg.importance):
+        # the same model (e.g. the shipped (c), to train its view-specific branch further:
+        # train.trainable=view_specific): every weight
+        model.load_state_dict({k: v.float() for k, v in sd.items()}, strict=True)
+        return
     if cfg.variant != "baseline":
-        raise ConfigError(f"model.init_from: {path} holds variant {cfg.variant!r}; start "
-                          f"from a baseline (a) checkpoint (its primary network is complete), "
-                          f"or, for the budget stage (model.overrides.importance=true), from "
-                          f"one of this very model")
+        raise ConfigError(f"model.init_from: {path} holds variant {cfg.variant!r} with another "
+                          f"configuration than this model's; start from a baseline (a) "
+                          f"checkpoint (its primary network is complete), or from one of this "
+                          f"very model (same variant and overrides; with "
+                          f"model.overrides.importance=true, the budget stage)")
     primary = {k.removeprefix("primary."): v.float() for k, v in sd.items()
                if k.startswith("primary.")}
     model.load_mvsplat(primary)

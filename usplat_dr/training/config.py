@@ -46,7 +46,9 @@ class TrainCfg:
     budget_tau: tuple[float, float] = (1.0, 0.05)
     # "all": every parameter trains; "budget": only the importance head and the adaptation
     # (the rest frozen: the unbudgeted model stays the checkpoint's, bit for bit, and a step
-    # backpropagates through the rasteriser and the head only)
+    # backpropagates through the rasteriser and the head only); "view_specific": only the
+    # view-specific branch (E_H, Proj, phi, H_s), the primary network and H_a frozen: can the
+    # branch learn to vary with the view at all? (docs/model.md, "Is the branch live?")
     trainable: str = "all"
 
 
@@ -98,6 +100,15 @@ class ModelSection:
     # unpickle init_mvsplat / init_from (and, with --resume, the run's last.ckpt) fully, for
     # files that torch.load(weights_only=True) refuses; only for files you trust (runs code)
     trust_checkpoint: bool = False
+    # > 0: after the weights are loaded, add N(0, std^2) noise (the run's seed) to the weights
+    # of H_s's last-layer rows that make U and the bias deltas, which every view-specific
+    # gradient is proportional to (zero-initialised, they leave the branch without one;
+    # SpecificHypernetwork.open_gate). Needs the full variant.
+    open_gate_std: float = 0.0
+
+
+#: ``train.trainable``'s choices: which parameters a run trains.
+TRAINABLE = ("all", "budget", "view_specific")
 
 
 def _positive_finite(x: float) -> bool:
@@ -126,7 +137,8 @@ RANGES = {
                               "must be choice or log_uniform"),
     "train.budget_tau": (lambda v: all(_positive_finite(t) for t in v),
                          "must be two temperatures, finite and > 0"),
-    "train.trainable": (lambda v: v in ("all", "budget"), "must be all or budget"),
+    "train.trainable": (lambda v: v in TRAINABLE, f"must be one of {', '.join(TRAINABLE)}"),
+    "model.open_gate_std": (lambda v: math.isfinite(v) and v >= 0, "must be finite and >= 0"),
     # more threads than CPUs only time-slice them (and torch/OpenMP would start them all)
     "threads": (lambda v: v is None or 1 <= v <= (os.cpu_count() or 1),
                 (f"must be >= 1 and at most this machine's CPUs (os.cpu_count() = "
@@ -233,4 +245,10 @@ def model_from_config(section: ModelSection | dict) -> UniqueSplat:
         model.load_mvsplat(section.init_mvsplat, trust_checkpoint=section.trust_checkpoint)
     if section.init_from:
         init_from_checkpoint(model, section.init_from, trust=section.trust_checkpoint)
+    if section.open_gate_std > 0:
+        if model.specific is None:
+            raise ConfigError(f"model.open_gate_std={section.open_gate_std} needs the "
+                              f"view-specific branch: model.variant=full, got "
+                              f"{section.variant!r}")
+        model.specific.open_gate(section.open_gate_std, weight=1.0)
     return model

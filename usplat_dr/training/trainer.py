@@ -51,6 +51,7 @@ from usplat_dr.config import ConfigError
 from usplat_dr.data.dataset import ChunkDataset, dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import StepTracker
+from usplat_dr.evaluation import view_specificity
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.evaluation.provenance import provenance, training_keys
@@ -269,14 +270,23 @@ def differing_fields(saved: dict, current: dict, prefix: str = "") -> list[tuple
 
 def freeze_for_budget(model: torch.nn.Module, c: RootCfg) -> None:
     """Check the budget settings (``train.budget_fractions``, ``train.trainable``) against the
-    model (a ``ConfigError`` naming the key and the fix) and, for ``trainable=budget``, freeze
-    every parameter but the importance head's and the adaptation's."""
+    model (a ``ConfigError`` naming the key and the fix) and freeze what ``train.trainable``
+    leaves out: for ``budget`` every parameter but the importance head's and the adaptation's,
+    for ``view_specific`` every parameter but the view-specific branch's (E_H, the lateral
+    convs, Proj, phi and H_s)."""
     tc = c.train
     head = getattr(model, "importance", None)
     if (tc.budget_fractions or tc.trainable == "budget") and head is None:
         raise ConfigError("train.budget_fractions and train.trainable=budget need a model "
                           "with an importance head: set model.overrides.importance=true (the "
                           "config synthetic_tiny_budget.yaml does)")
+    if tc.trainable == "view_specific":
+        if getattr(model, "specific", None) is None:
+            raise ConfigError("train.trainable=view_specific trains the view-specific branch, "
+                              "which this model lacks: set model.variant=full")
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.split(".", 1)[0] in ("view_embedding", "specific"))
+        return
     if tc.trainable != "budget":
         return
     if not tc.budget_fractions or (tc.budget_sampling == "choice"
@@ -656,7 +666,8 @@ class Trainer:
     #: The columns of metrics.csv.
     METRICS = ("step", "loss", "mse", "lpips", "depth", "target_depth", "budget", "full_mse",
                "psnr", "grad_norm",
-               *GRAD_GROUPS.values(), "lr", "skipped", "steps_per_s", "time_s", "cpu_s")
+               *GRAD_GROUPS.values(), "view_spread", "view_psnr_abs", "view_psnr_zero", "lr",
+               "skipped", "steps_per_s", "time_s", "cpu_s")
 
     def fit(self) -> dict:
         """Train to ``train.steps`` (or a signal), logging, checkpointing and validating
@@ -735,12 +746,15 @@ class Trainer:
         if stats is None:
             self._stop_if_diverged()
         self.step += 1
-        if run_log is not None:
-            run_log.log(self.step, last, self.skipped)
         tc = self.config.train
+        validating = self.rank == 0 and (self.step % tc.validate_every == 0
+                                         or self.step == tc.steps)
+        if run_log is not None:
+            meter = self.view_meter() if validating and last else {}
+            run_log.log(self.step, {**last, **meter}, self.skipped)
         if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
             self.save()
-        if self.rank == 0 and (self.step % tc.validate_every == 0 or self.step == tc.steps):
+        if validating:
             self.validate()
         return self._stopped_by_signal()
 
@@ -771,6 +785,21 @@ class Trainer:
                      for side in ("context", "target")}
             return {**first, "scene": fallback["scene"][:1]}  # save_comparison names it
         return default_collate([example])
+
+    def view_meter(self) -> dict:
+        """The view-specificity meter (``usplat_dr.evaluation.view_specificity``) on the
+        validation scene, for metrics.csv at validation steps: ``view_spread`` (how much Delta
+        W differs between its targets, relative to ||W||, the largest over the layers) and,
+        in dB, ``view_psnr_abs`` (mean |PSNR(per-target Delta W) - PSNR(the scene's mean)|)
+        and ``view_psnr_zero`` (PSNR(per-target) - PSNR(Delta W = 0)). ``{}`` for a model
+        without the view-specific branch or a validation scene with one target."""
+        batch = self._val_batch
+        if (batch is None or getattr(self.model, "specific", None) is None
+                or batch["target"]["image"].shape[1] < 2):
+            return {}
+        (r,) = view_specificity.read_batch(self.model, batch, self.device)
+        return {"view_spread": max(r.spread.values()), "view_psnr_abs": r.d_mean_abs,
+                "view_psnr_zero": r.d_zero}
 
     @torch.no_grad()
     def validate(self) -> Path | None:

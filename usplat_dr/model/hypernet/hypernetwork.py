@@ -156,23 +156,43 @@ class SpecificHypernetwork(nn.Module):
                  rank: int | None, init_std: float = 0.0):
         super().__init__()
         self.specs, self.rank = specs, rank
-        sizes = [delta_sizes(s, rank) for s in specs]
-        self.hyper = HyperMLP(embed_dim, hidden, sum(sum(d.values()) for d in sizes))
+        self.sizes = [delta_sizes(s, rank) for s in specs]
+        self.hyper = HyperMLP(embed_dim, hidden, sum(sum(d.values()) for d in self.sizes))
         # Delta W = 0: zero rows for U / full and every bias delta. ``init_std`` > 0 draws the
         # U (or full) rows' weights from N(0, init_std^2) instead (biases stay zero): Delta W
         # then starts small but view-dependent, and the view-specific features get a
         # gradient from the first step (with exact zeros it is proportional to U, ~0).
         with torch.no_grad():
-            i = 0
-            for d in sizes:
-                for key, n in d.items():
-                    if key != "v":
-                        if init_std > 0:
-                            self.hyper.last.weight[i:i + n].normal_(0.0, init_std)
-                        else:
-                            self.hyper.last.weight[i:i + n].zero_()
-                        self.hyper.last.bias[i:i + n].zero_()
-                    i += n
+            for rows in self._gate_rows():
+                self.hyper.last.weight[rows].zero_()
+                self.hyper.last.bias[rows].zero_()
+        if init_std > 0:
+            self.open_gate(init_std)
+
+    def _gate_rows(self) -> list[slice]:
+        """The rows of the last layer that make U (or the full Delta W) and the bias deltas:
+        what multiplies every view-specific gradient (the V rows are left out)."""
+        rows, i = [], 0
+        for d in self.sizes:
+            for key, n in d.items():
+                if key != "v":
+                    rows.append(slice(i, i + n))
+                i += n
+        return rows
+
+    @torch.no_grad()
+    def open_gate(self, std: float, weight: float = 0.0) -> None:
+        """Make Delta W depend on the embedding again: the weights of the last layer's U (or
+        full) and bias-delta rows become ``weight`` times what they were plus N(0, std^2)
+        noise (torch's global generator), their biases unchanged. With ``weight=1`` a trained
+        H_s keeps what it learnt; at 0 (construction) it starts afresh. The view-specific
+        branch's gradient is proportional to these rows (docs/model.md, "Is the branch
+        live?"), so zero or tiny rows leave the ResNet, Proj and phi without one."""
+        if not std >= 0:
+            raise ValueError(f"std must be >= 0, got {std}")
+        for rows in self._gate_rows():
+            w = self.hyper.last.weight[rows]
+            w.mul_(weight).add_(torch.empty_like(w).normal_(0.0, std))
 
     def forward(self, e: Float[Tensor, "t d"]) -> list[LayerDelta]:
         return split_deltas(self.hyper(e), self.specs, self.rank)
