@@ -163,7 +163,7 @@ def test_the_full_form_renders_what_the_rank_r_form_renders():
     assert (full - low).abs().mean() < 1e-6
     gt = torch.rand_like(low)
     assert (psnr64(full[0], gt[0]) - psnr64(low[0], gt[0])).max() < 1e-4
-    assert max((d.u.abs().max() for d in deltas.values())) > 0  # Delta W is not 0 here
+    assert max(d.u.abs().max() for d in deltas.values()) > 0  # Delta W is not 0 here
 
 
 def test_bad_inputs_name_the_argument():
