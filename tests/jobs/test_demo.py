@@ -132,8 +132,13 @@ def test_registered_verdict_lines():
         {"set": "cross-kind", "label": "not run", "why": "no (a) trained on one kind yet"}]}
     text = "\n".join(registered_lines(registered))
     assert "| standard (seed 5000) | equal steps | -0.050 | [-0.100, +0.010] | [-0.200, +0.080] " \
-           "| 3 x 60 | **refutes** |" in text
-    assert "| cross-kind | | | | | | not run: no (a) trained on one kind yet |" in text
+           "| 3 x 60 | **refutes** | not measured |" in text
+    assert "| cross-kind | | | | | | not run: no (a) trained on one kind yet | |" in text
+    registered["sets"][0]["branch_live"] = "no (0.0000 dB)"
+    registered["note"] = "The labels test the protocol."
+    text = "\n".join(registered_lines(registered))
+    assert "| 3 x 60 | **refutes** | no (0.0000 dB) |" in text
+    assert text.endswith("\n\nThe labels test the protocol.\n")  # the section ends blank
     assert "No multi-seed verdict" in registered_lines(None)[0]
 
 
@@ -158,6 +163,11 @@ def demo_results(out: Path, stable: dict):
     summaries = {v: {"parameters": 1.7e6, "time_per_scene_s": 0.12, "peak_memory_gib": 0.5,
                      "splits": {"standard": split(20.0 + i), "wide": split(18.0)}}
                  for i, v in enumerate(["base", *SHIPPED])}
+    # the view-specificity meter's summary of (c) (evaluation.view_specificity.Summary)
+    summaries["full"]["splits"]["standard"]["view_specificity"] = {
+        "scenes": 3, "spread_rel_w": {"to_gaussians.0": 4.2e-6, "to_disparity.0": 1e-6},
+        "d_mean_abs": {"mean_db": 0.00005, "low": 0.00003, "high": 0.00007},
+        "d_zero": {"mean_db": 0.006, "low": -0.0058, "high": 0.0177}, "live": False}
     manifest = {n: {"name": n, "steps": 100, "sha256": "0123456789abcdef0123", "data": "synth"}
                 for n in (BASE, *SHIPPED.values())}
     return DemoResults(
@@ -194,6 +204,7 @@ def test_write_report_writes_a_section_each(tmp_path):
         "# usplat-dr demo report",
         "## The shipped checkpoints on fresh scenes (standard split)",
         "## Verdict on view conditioning (these scenes, the shipped seed)",
+        "## Is (c)'s view-specific branch live? (the view-specificity meter)",
         "## Per split (PSNR / SSIM / depth AbsRel)", "### Worst cases",
         "## Fine-tuning briefly from the shipped (a)", "## Speed against accuracy",
         "## Novel views", "## Where these numbers came from", "## Wall time"]
@@ -201,6 +212,10 @@ def test_write_report_writes_a_section_each(tmp_path):
     assert "\n\n\n" not in text  # sections one blank line apart
     assert "| (c) UniqueSplat | view-specific H_s | 0.045 | 0.08 |" in text
     assert "| wide | 3 | 18.00 / 0.500 / 0.100 |" in text
+    # the meter: the shipped (c) and the fine-tuned one (the same summary here), not live
+    assert text.count("| 3 | 4.2e-06 | 0.0001 dB [0.0000, 0.0001] | +0.0060 dB [-0.0058, "
+                      "+0.0177] | no |") == 2
+    assert "tests the fine-tuning protocol, not weights that depend on the view" in text
     assert "(c) UniqueSplat, wide: w (14.25 dB)\n\n![wide](w.png)" in text
     assert "(a) primary network, s1:\n\n![s1](eval_shipped_baseline/renders/standard/s1.png)" \
         in text and "s2.png" not in text  # the first two renders

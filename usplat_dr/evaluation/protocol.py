@@ -29,6 +29,7 @@ from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.synth.render import MATTE, SHINY
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.view_sampler import read_evaluation_index
+from usplat_dr.evaluation import view_specificity
 from usplat_dr.evaluation.allocation import COLUMNS as ALLOCATION_COLUMNS
 from usplat_dr.evaluation.allocation import allocation, kept_per_pixel, save_allocation
 from usplat_dr.evaluation.figures import save_comparison
@@ -95,7 +96,8 @@ def peak_memory_gib(device: torch.device) -> float:
 def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
              lpips=None, device: torch.device | str = "cpu", images_per_split: int = 4,
              progress: bool = True, label: str = "", prune=None,
-             provenance: dict | None = None, budget=None, rank_by: str | None = None) -> dict:
+             provenance: dict | None = None, budget=None, rank_by: str | None = None,
+             view_meter: bool | tuple[str, ...] = True) -> dict:
     """Evaluate ``model`` on each split (``indices``: split name -> evaluation index JSON) of
     ``dataset`` (a config section: name, roots, image_shape). Returns the summary.
 
@@ -110,17 +112,28 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     ``provenance``: the checkpoint's provenance record; when it lists the training scenes
     (``train_keys``), scored scenes among them are a warning (one line: the count and the
     first) and the summary's ``scenes_in_training_data``. An evaluation index none of whose
-    keys names a scene of the data is a warning too."""
+    keys names a scene of the data is a warning too.
+
+    ``view_meter`` (True: every split; a tuple: those splits; False: none): for a model with
+    a view-specific branch (and no budget or pruning), the view-specificity meter
+    (``evaluation.view_specificity``) on every scene with >= 2 targets:
+    ``view_spread``, ``view_psnr_mean``, ``view_psnr_abs`` and ``view_psnr_zero`` in
+    ``per_scene.csv``, the summary's ``view_specificity`` per split, and a line in the log.
+    It renders each scene three more times."""
     device = torch.device(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = model.to(device).eval()
+    # The view-specificity meter for a (c), on the exact model (no budget, no pruning)
+    metered = (bool(view_meter) and getattr(model, "specific", None) is not None
+               and budget is None and prune is None)
     rows, summary, times = [], {"splits": {}}, []
     scored_keys: set[str] = set()  # the data's scene keys scored, over every split
     for split, index in indices.items():
         ds = dataset_from_section({**dataset, "evaluation_index": index}, "test")
         warn_unmatched_index(ds, split, index)
-        scenes = []
+        scenes, readings = [], []
+        meter = metered and (view_meter is True or split in view_meter)
         bar = None
         if progress:
             bar = tqdm(desc=f"eval {label} {split}".strip(), unit="scene", dynamic_ncols=True)
@@ -153,6 +166,12 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
                 material = batch["target"]["material"][0].to(device)
                 for key, codes in (("psnr_shiny", SHINY), ("psnr_matte", MATTE)):
                     row[key] = nan_mean(masked_psnr(pred, gt, material, codes))
+            if meter and len(gt) >= 2:
+                reading = view_specificity.read_batch(model, batch, device)[0]
+                readings.append(reading)
+                row.update(view_spread=max(reading.spread.values()),
+                           view_psnr_mean=reading.d_mean, view_psnr_abs=reading.d_mean_abs,
+                           view_psnr_zero=reading.d_zero)
             rows.append(row)
             scenes.append(row)
             if i < images_per_split:
@@ -171,6 +190,10 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
             metrics["lpips"] = "unavailable (no LPIPS weight files given)"
         if any("kept" in r for r in scenes):
             metrics["allocation"] = allocation_summary(scenes)
+        if readings:
+            reading = view_specificity.summarise(readings)
+            metrics["view_specificity"] = reading.as_dict()
+            log.info("%s: %s", split, reading.line())
         summary["splits"][split] = {"scenes": len(scenes), **metrics,
                                     **index_coverage(index, [r["scene"] for r in scenes])}
         coverage = summary["splits"][split]
@@ -197,6 +220,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         peak_memory_gib=peak_memory_gib(device), device=str(device))
     fields = ["split", "scene", "targets", "psnr", "ssim", "lpips", "abs_rel", "rmse", "delta1",
               "psnr_shiny", "psnr_matte"]
+    if metered:
+        fields += ["view_spread", "view_psnr_mean", "view_psnr_abs", "view_psnr_zero"]
     if any("kept" in r for r in rows):
         fields += list(ALLOCATION_COLUMNS)
     with atomic_open(out / "per_scene.csv", "w") as f:

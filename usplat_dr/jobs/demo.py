@@ -91,7 +91,7 @@ def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int =
         t = time.perf_counter()
         model, _ = load_model(path)
         summaries[variant] = evaluate(model, dataset, indices, out / f"eval_shipped_{variant}",
-                                      label=variant)
+                                      label=variant, view_meter=("standard",))
         timings[f"evaluation shipped {variant}"] = time.perf_counter() - t
     verdict = compare({v: [out / f"eval_shipped_{v}" / "per_scene.csv"] for v in SHIPPED})
     verdict_chart(verdict, out / "verdict.png")

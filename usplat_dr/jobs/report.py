@@ -12,6 +12,7 @@ from matplotlib.lines import Line2D
 
 from usplat_dr.evaluation.verdict import Comparison
 from usplat_dr.evaluation.verdict import table as verdict_table
+from usplat_dr.evaluation.view_specificity import LIVE_BOUND_DB
 from usplat_dr.io import atomic_open
 from usplat_dr.jobs.budgets import (
     BASE,
@@ -62,14 +63,17 @@ def registered_lines(registered: dict | None) -> list[str]:
               f"(`checkpoints/verdict.json`, {registered['date']}; rule: "
               f"{registered['rule']}):"), "",
              ("| held-out set | arm | (c) - (a) PSNR | 95% bootstrap | 95% seed-level t | "
-              "seeds x scenes | label |"), "|---|---|---|---|---|---|---|"]
+              "seeds x scenes | label | branch live? |"), "|---|---|---|---|---|---|---|---|"]
     for r in registered["sets"]:
         if r.get("label") in (None, "not run"):
-            lines.append(f"| {r['set']} | | | | | | not run: {r.get('why', '')} |")
+            lines.append(f"| {r['set']} | | | | | | not run: {r.get('why', '')} | |")
             continue
         lines.append(f"| {r['set']} | {r['arm']} | {r['mean']:+.3f} | [{r['low']:+.3f}, "
                      f"{r['high']:+.3f}] | [{r['seed_low']:+.3f}, {r['seed_high']:+.3f}] | "
-                     f"{r['seeds']} x {r['scenes']} | **{r['label']}** |")
+                     f"{r['seeds']} x {r['scenes']} | **{r['label']}** | "
+                     f"{r.get('branch_live', 'not measured')} |")
+    if registered.get("note"):
+        lines += ["", registered["note"]]
     return [*lines, ""]
 
 
@@ -98,7 +102,8 @@ class DemoResults:
 def write_report(results: DemoResults) -> Path:
     """``report.md`` in ``results.out``, from the results of the demo's steps and the files
     they wrote (renders, ``bench_demo/bench.md``, ``bench/bench.md``): a section each."""
-    sections = (intro_lines, shipped_lines, verdict_lines, split_lines, worst_case_lines,
+    sections = (intro_lines, shipped_lines, verdict_lines, meter_lines, split_lines,
+                worst_case_lines,
                 fine_tuning_lines, speed_lines, allocation_lines, novel_view_lines,
                 provenance_lines, wall_time_lines)
     lines = [line for section in sections for line in section(results)]
@@ -155,6 +160,37 @@ def verdict_lines(r: DemoResults) -> list[str]:
              "full with the oracle per layer "
              "(`train/studies/oracle_delta.py`)."), "", verdict_table(r.verdict), "",
             "![verdict](verdict.png)", "", *registered_lines(r.registered)]
+
+
+def meter_lines(r: DemoResults) -> list[str]:
+    """The view-specificity meter (``evaluation.view_specificity``) of the shipped and the
+    briefly fine-tuned (c) on the standard split: is Delta W different per target view?"""
+    rows = [("(c) shipped", r.summaries.get("full")), ("(c) fine-tuned here", r.tuned.get("full"))]
+    rows = [(name, s["splits"]["standard"].get("view_specificity")) for name, s in rows if s]
+    rows = [(name, m) for name, m in rows if m]
+    if not rows:
+        return []
+    lines = ["## Is (c)'s view-specific branch live? (the view-specificity meter)", "",
+             ("Per scene of the standard split: how much Delta W differs between the scene's "
+              "target views (relative to ||W||, the largest of the four layers), and what that "
+              "difference does to the renders: PSNR with each target's own Delta W minus PSNR "
+              "with the scene's mean Delta W for every target (mean of the absolute value; 0 "
+              "when Delta W is the same for every view), and minus PSNR with Delta W = 0; 95% t "
+              "intervals over scenes. A (c) counts as view-specific (live) at >= "
+              f"{LIVE_BOUND_DB} dB."), "",
+             ("| model | scenes | Delta W spread / ||W|| | abs PSNR(own) - PSNR(scene mean) | "
+              "PSNR(own) - PSNR(Delta W = 0) | live? |"), "|---|---|---|---|---|---|"]
+    for name, m in rows:
+        a, z = m["d_mean_abs"], m["d_zero"]
+        lines.append(f"| {name} | {m['scenes']} | {max(m['spread_rel_w'].values()):.1e} | "
+                     f"{a['mean_db']:.4f} dB [{a['low']:.4f}, {a['high']:.4f}] | "
+                     f"{z['mean_db']:+.4f} dB [{z['low']:+.4f}, {z['high']:+.4f}] | "
+                     f"{'yes' if m['live'] else 'no'} |")
+    if not all(m["live"] for _, m in rows):
+        lines += ["", ("Where the branch is not live, (c) is (b) plus a constant Delta W per "
+                       "scene: a verdict on such a (c) tests the fine-tuning protocol, not "
+                       "weights that depend on the view (docs/verdict.md).")]
+    return [*lines, ""]
 
 
 def split_lines(r: DemoResults) -> list[str]:

@@ -1,0 +1,102 @@
+"""The view-specificity meter (``usplat_dr.evaluation.view_specificity``) of checkpoints on
+sets of scenes: training scenes and held-out ones, one table. What the live-branch study reads
+(train/studies/README.md, "A live view-specific branch").
+
+    python train/studies/branch_meter.py --checkpoints tiny_full outputs/live/g02_lr1e-3 \\
+        --sets train=outputs/big/train480/train:30 heldout=outputs/big/test2000:60 \\
+        --out outputs/live/meter
+
+A set is NAME=FOLDER[:SCENES]: FOLDER holds the chunk files and ``evaluation_index_standard.json``
+(a ``usplat synth`` test root, or a train stage's ``train/`` folder: its scenes are scored with
+the standard split's frames); SCENES caps how many (the index's first). A checkpoint is a
+shipped name, a checkpoint file or a run folder (its ``checkpoints/last.ckpt``). Writes
+``meter.csv`` (per scene) and ``meter.json`` (the summaries) into ``--out``, and prints one
+line per checkpoint and set.
+"""
+
+import argparse
+import csv
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+
+import usplat_dr  # noqa: F401  (libLLVM first)
+from usplat_dr.data.dataset import dataset_from_section
+from usplat_dr.evaluation.view_specificity import read_batch, summarise
+from usplat_dr.io import atomic_open, write_json
+from usplat_dr.training.checkpoints import load
+
+
+def checkpoint_path(name: str) -> str:
+    run = Path(name) / "checkpoints" / "last.ckpt"
+    return str(run) if run.is_file() else name
+
+
+def as_test_root(folder: Path, tmp: Path) -> Path:
+    """A dataset root whose ``test/`` stage is ``folder`` (a train stage's scenes scored like
+    test scenes), or ``folder`` itself when it is a test root."""
+    if (folder / "test").is_dir():
+        return folder
+    root = tmp / folder.name
+    root.mkdir(parents=True, exist_ok=True)
+    link = root / "test"
+    if not link.exists():
+        os.symlink(folder.resolve(), link)
+    return root
+
+
+def read_set(model, root: Path, index: Path, scenes: int | None) -> list:
+    ds = dataset_from_section({"name": "synth", "roots": [str(root)], "image_shape": [64, 64],
+                               "evaluation_index": str(index)}, "test")
+    readings = []
+    for example in ds:
+        readings += read_batch(model, torch.utils.data.default_collate([example]))
+        if scenes is not None and len(readings) >= scenes:
+            break
+    return readings
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoints", nargs="+", required=True)
+    p.add_argument("--sets", nargs="+", required=True, metavar="NAME=FOLDER[:SCENES]")
+    p.add_argument("--out", required=True)
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sets = {}
+    for item in args.sets:
+        name, _, spec = item.partition("=")
+        folder, _, count = spec.partition(":")
+        if not name or not folder:
+            raise SystemExit(f"--sets: {item!r} is not NAME=FOLDER[:SCENES]")
+        index = Path(folder) / "evaluation_index_standard.json"
+        if not index.is_file():
+            raise SystemExit(f"--sets: no {index}")
+        sets[name] = (Path(folder), index, int(count) if count else None)
+    rows, summaries = [], {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for ckpt in args.checkpoints:
+            model = load(checkpoint_path(ckpt), "cpu")
+            for name, (folder, index, count) in sets.items():
+                readings = read_set(model, as_test_root(folder, Path(tmp)), index, count)
+                s = summarise(readings)
+                summaries.setdefault(ckpt, {})[name] = s.as_dict()
+                rows += [{"checkpoint": ckpt, "set": name, **r.row()} for r in readings]
+                print(f"{ckpt} on {name}: {s.line()}", flush=True)
+    with atomic_open(out / "meter.csv", "w") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    write_json(out / "meter.json", summaries)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
