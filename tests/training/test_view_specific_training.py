@@ -39,7 +39,8 @@ def test_only_the_branch_trains_from_an_opened_gate_and_the_meter_is_logged(synt
     base.fit()
     stage = Trainer(config(synth_root, tmp_path / "vs", 3, "train.validate_every=3",
                            f"model.init_from={base.checkpoint_path}",
-                           "train.trainable=view_specific", "model.open_gate_std=0.05"))
+                           "train.trainable=view_specific", "model.open_gate_std=0.05",
+                           "train.keep_every=2", "train.checkpoint_every=1"))
     start = {k: v.clone() for k, v in stage.model.state_dict().items()}
     loaded = base.model.state_dict()
     gate = "specific.hyper.net.4.weight"
@@ -59,6 +60,9 @@ def test_only_the_branch_trains_from_an_opened_gate_and_the_meter_is_logged(synt
     moved = [k for k in start if k.startswith("view_embedding.") and not torch.equal(
         end[k], start[k])]
     assert any(".resnet." in k for k in moved) and any(".phi." in k for k in moved)
+    # train.keep_every=2: of the checkpoints at steps 1, 2, 3 the one at step 2 is kept
+    kept = sorted(p.name for p in (tmp_path / "vs" / "checkpoints").glob("step_*.ckpt"))
+    assert kept == ["step_0000002.ckpt"]
     rows = read_metrics(tmp_path / "vs")
     assert float(rows[-1]["grad_view_features"]) > 0
     # the meter at the validation step (the last) only, on the two targets of the scene:

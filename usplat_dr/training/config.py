@@ -29,6 +29,9 @@ class TrainCfg:
 
     steps: int = 300_000  # optimiser steps (the field's recipe)
     checkpoint_every: int = 1000  # steps between checkpoints (also at the end and on signals)
+    # > 0: a checkpoint saved at a multiple of this many steps is also kept as
+    # checkpoints/step_<step>.ckpt (a curve of checkpoints to evaluate); 0: only last.ckpt
+    keep_every: int = 0
     validate_every: int = 5000  # steps between validation renders
     log_every: int = 10  # steps between rows of metrics.csv
     max_nonfinite: int = 20  # non-finite steps in a row that stop the run
@@ -119,6 +122,7 @@ def _positive_finite(x: float) -> bool:
 RANGES = {
     "train.steps": (lambda v: v >= 1, "must be >= 1"),
     "train.checkpoint_every": (lambda v: v >= 1, "must be >= 1"),
+    "train.keep_every": (lambda v: v >= 0, "must be >= 0 (0: keep only last.ckpt)"),
     "train.validate_every": (lambda v: v >= 1, "must be >= 1"),
     "train.log_every": (lambda v: v >= 1, "must be >= 1"),
     "train.max_nonfinite": (lambda v: v >= 1, "must be >= 1"),

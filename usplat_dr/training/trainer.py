@@ -408,6 +408,11 @@ class Trainer:
             state["ranks"] = ranks
         with disk_full_names(self.checkpoint_path):
             path = torch_save(state, self.checkpoint_path)
+        keep = self.config.train.keep_every
+        if keep and self.step % keep == 0:  # a copy that later checkpoints leave alone
+            kept = self.checkpoint_path.with_name(f"step_{self.step:07d}.ckpt")
+            with disk_full_names(kept):
+                torch_save(state, kept)
         self.saved_step = self.step
         return path
 
