@@ -135,7 +135,9 @@ MISTAKES = [
       "model.init_from={tmp}/missing.pt"],
      "model.init_from: checkpoint '{tmp}/missing.pt' does not exist"),
     (["train", "--config", "synthetic_tiny.yaml", "dataset.roots=[{data}]",
-      f"model.init_from={FULL}"], "holds variant 'full'; start from a baseline (a)"),
+      "model.variant=agnostic", f"model.init_from={FULL}"],
+     "holds variant 'full' with another configuration than this model's; start from a "
+     "baseline (a)"),
     (["fit", "--data", "{tmp}/nowhere"], "index.json does not exist"),
 ]
 

@@ -219,6 +219,15 @@ def test_init_from_starts_finetuning_at_the_baseline(synth_root, tmp_path):
                            "init_from": str(tmp_path / "none.ckpt")})
     full = Trainer(config(synth_root, tmp_path / "c", 1, "model.variant=full"))
     full.save()
+    # a (c) starts another of the same configuration with every weight (the view-specific
+    # stage, train.trainable=view_specific); any other model only from an (a)
+    same = model_from_config({"preset": "tiny", "variant": "full",
+                              "init_from": str(full.checkpoint_path)})
+    for k, v in full.model.state_dict().items():
+        assert torch.equal(same.state_dict()[k], v), k
     with pytest.raises(ConfigError, match="start from a baseline"):
-        model_from_config({"preset": "tiny", "variant": "full",
+        model_from_config({"preset": "tiny", "variant": "agnostic",
+                           "init_from": str(full.checkpoint_path)})
+    with pytest.raises(ConfigError, match="another configuration"):
+        model_from_config({"preset": "tiny", "variant": "full", "overrides": {"delta_rank": 2},
                            "init_from": str(full.checkpoint_path)})

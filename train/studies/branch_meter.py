@@ -9,7 +9,9 @@ sets of scenes: training scenes and held-out ones, one table. What the live-bran
 A set is NAME=FOLDER[:SCENES]: FOLDER holds the chunk files and ``evaluation_index_standard.json``
 (a ``usplat synth`` test root, or a train stage's ``train/`` folder: its scenes are scored with
 the standard split's frames); SCENES caps how many (the index's first). A checkpoint is a
-shipped name, a checkpoint file or a run folder (its ``checkpoints/last.ckpt``). Writes
+shipped name, a checkpoint file or a run folder (its ``checkpoints/last.ckpt``), or
+``open:NAME:STD``: the shipped (c) NAME with its gate opened by STD (``model.open_gate_std``) as
+a training run with seed 0 starts (its step 0: the noise the opened gate puts in). Writes
 ``meter.csv`` (per scene) and ``meter.json`` (the summaries) into ``--out``, and prints one
 line per checkpoint and set.
 """
@@ -33,6 +35,18 @@ from usplat_dr.training.checkpoints import load
 def checkpoint_path(name: str) -> str:
     run = Path(name) / "checkpoints" / "last.ckpt"
     return str(run) if run.is_file() else name
+
+
+def load_model(spec: str):
+    """The model a ``--checkpoints`` entry names (module docstring)."""
+    if spec.startswith("open:"):
+        from usplat_dr.training.config import ModelSection, model_from_config
+
+        _, name, std = spec.split(":")
+        torch.manual_seed(0)  # as the trainer seeds before it builds the model (seed=0)
+        return model_from_config(ModelSection(preset="tiny", variant="full", init_from=name,
+                                              open_gate_std=float(std))).eval()
+    return load(checkpoint_path(spec), "cpu")
 
 
 def as_test_root(folder: Path, tmp: Path) -> Path:
@@ -83,7 +97,7 @@ def main(argv=None) -> int:
     rows, summaries = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         for ckpt in args.checkpoints:
-            model = load(checkpoint_path(ckpt), "cpu")
+            model = load_model(ckpt)
             for name, (folder, index, count) in sets.items():
                 readings = read_set(model, as_test_root(folder, Path(tmp)), index, count)
                 s = summarise(readings)
