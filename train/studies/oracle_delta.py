@@ -208,6 +208,23 @@ def score_targets(pred, batch, pixels: str) -> list[float]:
                        SHINY if pixels == "shiny" else MATTE)
 
 
+def frozen_baseline(parser: argparse.ArgumentParser, checkpoint: str):
+    """The trained (a) ``checkpoint``, every parameter frozen, torch on one thread; a
+    ``parser.error`` for another variant."""
+    import torch
+
+    from usplat_dr.training.checkpoints import load_model
+
+    torch.set_num_threads(1)
+    model, _ = load_model(checkpoint)
+    if model.cfg.variant != "baseline":
+        parser.error(f"--checkpoint: a trained (a) (variant baseline), got "
+                     f"{model.cfg.variant!r}")
+    for q in model.parameters():
+        q.requires_grad_(False)
+    return model
+
+
 def offset_index(index: str, offsets: list[int], out: Path) -> str:
     """``index`` (an evaluation index file) with each scene's targets at ``offsets`` from its
     first context frame, written into ``out``; scenes whose gap the offsets leave are
@@ -351,14 +368,9 @@ def main(argv=None) -> int:
     from usplat_dr.data.types import model_inputs
     from usplat_dr.evaluation import nan_mean, synthetic_indices
     from usplat_dr.io import atomic_open, write_json
-    from usplat_dr.training.checkpoints import load_model, training_image_shape
+    from usplat_dr.training.checkpoints import training_image_shape
 
-    torch.set_num_threads(1)
-    model, _ = load_model(args.checkpoint)
-    if model.cfg.variant != "baseline":
-        p.error(f"--checkpoint: a trained (a) (variant baseline), got {model.cfg.variant!r}")
-    for q in model.parameters():
-        q.requires_grad_(False)
+    model = frozen_baseline(p, args.checkpoint)
     specs = tuple(model.conv_spec(name) for name in layers)
     shape = training_image_shape(args.checkpoint) or (64, 64)
     index = synthetic_indices(args.data, [args.split])[args.split]

@@ -35,7 +35,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from oracle_delta import INJECTABLE_ALL, DeltaFit, score_targets
+from oracle_delta import INJECTABLE_ALL, DeltaFit, frozen_baseline, score_targets
 
 from usplat_dr import portable
 
@@ -179,21 +179,14 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
-    import torch
     from torch.utils.data import default_collate
 
     from usplat_dr.data.dataset import dataset_from_section
     from usplat_dr.data.view_sampler import read_evaluation_index
     from usplat_dr.evaluation import synthetic_indices
     from usplat_dr.io import atomic_open, write_json
-    from usplat_dr.training.checkpoints import load_model
 
-    torch.set_num_threads(1)
-    model, _ = load_model(args.checkpoint)
-    if model.cfg.variant != "baseline":
-        p.error(f"--checkpoint: a trained (a) (variant baseline), got {model.cfg.variant!r}")
-    for q in model.parameters():
-        q.requires_grad_(False)
+    model = frozen_baseline(p, args.checkpoint)
     specs = tuple(model.conv_spec(name) for name in INJECTABLE_ALL)
     index = between_frames_index(read_evaluation_index(
         synthetic_indices(args.data, [args.split])[args.split]))
