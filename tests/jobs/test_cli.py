@@ -136,8 +136,8 @@ MISTAKES = [
      "model.init_from: checkpoint '{tmp}/missing.pt' does not exist"),
     (["train", "--config", "synthetic_tiny.yaml", "dataset.roots=[{data}]",
       "model.variant=agnostic", f"model.init_from={FULL}"],
-     "holds variant 'full' with another configuration than this model's; start from a "
-     "baseline (a)"),
+     ("holds variant 'full' with another configuration than this model's; start from a "
+      "baseline (a)")),
     (["fit", "--data", "{tmp}/nowhere"], "index.json does not exist"),
 ]
 

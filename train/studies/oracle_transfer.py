@@ -62,7 +62,6 @@ def fit_transfer(model, batch, specs, rank: int, steps: int, lr: float, seed: in
     import torch
 
     from usplat_dr.data.types import model_inputs
-    from usplat_dr.model.hypernet.hypernetwork import LayerDelta
 
     args = model_inputs(batch, "cpu")
     gt = batch["target"]["image"][0]
@@ -119,35 +118,48 @@ def fit_transfer(model, batch, specs, rank: int, steps: int, lr: float, seed: in
     lin1 = DeltaFit(specs, 1, rank, g)
 
     def linear(ts):
-        d0, d1 = DeltaFit.deltas(_with_parts(shared, lin0), 1), lin1.deltas(1)
-        deltas = {}
-        for s in specs:
-            a, b = d0[s.name], d1[s.name]
-            tt = ts.view(-1, 1, 1)
-            u = torch.cat((a.u.expand(len(ts), -1, -1), tt * b.u.expand(len(ts), -1, -1)), 2)
-            v = torch.cat((a.v.expand(len(ts), -1, -1, -1, -1),
-                           b.v.expand(len(ts), -1, -1, -1, -1)), 1)
-            deltas[s.name] = LayerDelta(bias=a.bias + ts.view(-1, 1) * b.bias, u=u, v=v)
-        return deltas
+        return linear_deltas(_with_parts(shared, lin0).deltas(1), lin1.deltas(1), ts)
 
     params = [t for p in lin0.values() for t in p.values()] + lin1.parameters()
     optimise(params, lambda: linear(t_all[fit_idx]), fit_args, gt[fit_idx], steps)
     optimise(shared.parameters(), lambda: shared.deltas(m_fit), fit_args, gt[fit_idx], steps)
     out["shared"] = score(shared.deltas(m_score), score_args, sub_batch)
-    # interpolated: each scored frame between fit frames j and j + 1
     dp = per.deltas(m_fit)
-    interp = {}
-    for s in specs:
-        d = dp[s.name]
-        left, right = torch.arange(m_score), torch.arange(1, m_score + 1)
-        interp[s.name] = LayerDelta(
-            bias=(d.bias[left] + d.bias[right]) / 2,
-            u=torch.cat((d.u[left] / 2, d.u[right] / 2), 2),
-            v=torch.cat((d.v[left], d.v[right]), 1))
-    out["interpolated"] = score(interp, score_args, sub_batch)
+    out["interpolated"] = score(midpoints(dp), score_args, sub_batch)
     out["linear"] = score(linear(t_all[score_idx]), score_args, sub_batch)
     out["in_sample_shared"] = score(shared.deltas(m_fit), fit_args, fit_batch)
     out["in_sample_per_target"] = score(dp, fit_args, fit_batch)
+    return out
+
+
+def midpoints(deltas: dict) -> dict:
+    """Rank-r Delta W of M frames (layer -> ``LayerDelta``) -> of the M - 1 frames between
+    them: (D_j + D_j+1) / 2 exactly, as rank 2r factors (U_j / 2, U_j+1 / 2) and (V_j; V_j+1)."""
+    import torch
+
+    from usplat_dr.model.hypernet.hypernetwork import LayerDelta
+
+    out = {}
+    for name, d in deltas.items():
+        out[name] = LayerDelta(bias=(d.bias[:-1] + d.bias[1:]) / 2,
+                               u=torch.cat((d.u[:-1] / 2, d.u[1:] / 2), 2),
+                               v=torch.cat((d.v[:-1], d.v[1:]), 1))
+    return out
+
+
+def linear_deltas(d0: dict, d1: dict, ts) -> dict:
+    """Delta W(t) = D0 + t D1 for each t of ``ts`` [T] (D0, D1: one-row rank-r ``LayerDelta``s
+    per layer), as rank 2r factors (U0, t U1) and (V0; V1): exactly linear in t."""
+    import torch
+
+    from usplat_dr.model.hypernet.hypernetwork import LayerDelta
+
+    out, n = {}, len(ts)
+    for name, a in d0.items():
+        b = d1[name]
+        u = torch.cat((a.u.expand(n, -1, -1), ts.view(-1, 1, 1) * b.u.expand(n, -1, -1)), 2)
+        v = torch.cat((a.v.expand(n, -1, -1, -1, -1), b.v.expand(n, -1, -1, -1, -1)), 1)
+        out[name] = LayerDelta(bias=a.bias + ts.view(-1, 1) * b.bias, u=u, v=v)
     return out
 
 
