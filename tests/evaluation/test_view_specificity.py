@@ -14,6 +14,7 @@ from usplat_dr.evaluation.view_specificity import (
     LIVE_BOUND_DB,
     full_delta,
     layer_spread,
+    manipulation_check,
     read_batch,
     scene_mean,
     summarise,
@@ -185,3 +186,17 @@ def test_t_interval_is_students():
     assert lo == pytest.approx(2 - 4.302653 / math.sqrt(3), rel=1e-6)
     assert hi == pytest.approx(2 + 4.302653 / math.sqrt(3), rel=1e-6)
     assert all(math.isnan(x) for x in t_interval([1.0]))
+
+
+def test_manipulation_check_reads_an_evaluations_per_scene_csv(tmp_path):
+    path = tmp_path / "per_scene.csv"
+    path.write_text("split,scene,psnr,view_spread,view_psnr_abs\n"
+                    "standard,s0,20,1e-3,0.04\nstandard,s1,21,3e-3,0.08\n"
+                    "wide,s0,19,9e-1,9.0\n")  # another split: not read
+    c = manipulation_check(path)
+    assert c["scenes"] == 2 and c["spread_rel_w"] == 3e-3
+    assert c["psnr_abs_db"] == pytest.approx(0.06) and c["live"]  # 0.06 >= 0.05
+    lo, hi = t_interval([0.04, 0.08])
+    assert (c["low"], c["high"]) == (lo, hi)
+    (tmp_path / "a.csv").write_text("split,scene,psnr\nstandard,s0,20\n")  # no meter: (a)
+    assert manipulation_check(tmp_path / "a.csv") is None

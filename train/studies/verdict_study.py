@@ -218,6 +218,7 @@ def register(args, out: Path) -> None:
     command = "python train/studies/verdict_study.py " + shlex.join(kept)
     rows = [{"set": name, **{k: r[k] for k in ("arm", "mean", "low", "high", "seed_low",
                                                  "seed_high", "seeds", "scenes", "label")},
+             **({"branch_live": r["branch_live"]} if r.get("branch_live") else {}),
              "init": args.init, "command": command}
             for r in json.loads((out / "labels.json").read_text()) if r["split"] == "standard"]
     write_json(path, {
@@ -259,6 +260,7 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
     """The paired comparison of the runs' evaluations in ``<run>/<eval_name>``: writes
     ``verdict<suffix>.json`` and ``.png``, returns the Markdown tables."""
     from usplat_dr.evaluation.verdict import as_dicts, chart, compare, table
+    from usplat_dr.evaluation.view_specificity import LIVE_BOUND_DB, manipulation_check
     from usplat_dr.io import write_json
 
     def csvs(v):
@@ -278,14 +280,34 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
         chart(rows, out / f"verdict{suffix}.png")
     # the pre-registered rule's label per split, (c) - (a) on PSNR (checkpoints/verdict.json
     # holds these for the shipped protocol; the demo prints them)
+    # The manipulation check: each (c) run's view-specificity meter on the standard split
+    checks = {s: manipulation_check(out / run_name("full", s) / eval_name / "per_scene.csv")
+              for s in args.seeds} if "full" in args.variants else {}
+    live = [s for s, c in checks.items() if c and c["live"]]
+    branch_live = (f"{len(live)} of {len(checks)} seeds live (mean |PSNR(own) - PSNR(scene "
+                   f"mean)| >= {LIVE_BOUND_DB} dB)") if checks else None
     write_json(out / f"labels{suffix}.json", [
         {"held_out": where, "split": r.split, "arm": arm, "mean": r.mean, "low": r.low,
          "high": r.high, "seed_low": r.seed_low, "seed_high": r.seed_high, "seeds": r.seeds,
-         "scenes": r.scenes, "label": r.label}
+         "scenes": r.scenes, "label": r.label, "branch_live": branch_live,
+         "counts": bool(checks) and len(live) == len(checks)}
         for arm, rs in (("equal steps", rows), ("equal wall time", wall_rows))
         for r in rs if r.metric == "psnr" and r.variant == "full"])
     text = (f"# Verdict: {len(args.seeds)} seeds x {args.steps} fine-tuning steps from "
-            f"`{args.init}`, evaluated on {where}\n\n## Equal steps\n\n{table(rows)}\n\n")
+            f"`{args.init}`, evaluated on {where}\n\n")
+    if checks:
+        text += ("## Manipulation check: is each (c)'s view-specific branch live?\n\n"
+                 "| seed | scenes | Delta W spread / ||W|| | mean abs PSNR(own) - PSNR(scene "
+                 "mean) [95% t] | live? |\n|---|---|---|---|---|\n")
+        for s, c in checks.items():
+            text += (f"| {s} | {c['scenes']} | {c['spread_rel_w']:.1e} | {c['psnr_abs_db']:.4f} "
+                     f"dB [{c['low']:.4f}, {c['high']:.4f}] | {'yes' if c['live'] else 'no'} |\n"
+                     if c else f"| {s} | | | no meter in its evaluation | no |\n")
+        text += (f"\n{branch_live}: " + ("the labels below judge per-view weights.\n\n"
+                 if len(live) == len(checks) else "a (c) whose branch is not live is (b) plus a "
+                 "constant per scene; the labels below test the protocol, not per-view "
+                 "weights, and do not count.\n\n"))
+    text += f"## Equal steps\n\n{table(rows)}\n\n"
     if wall_rows:
         text += (f"## Equal wall time: (c) against (a) trained {args.wall_ratio:g}x the "
                  f"steps\n\n{table(wall_rows)}\n\n")

@@ -202,6 +202,25 @@ class Summary:
                 f"{'live' if self.live else 'not live'} (bound {LIVE_BOUND_DB} dB)")
 
 
+def manipulation_check(per_scene_csv, split: str = "standard") -> dict | None:
+    """The meter's columns of an evaluation's ``per_scene.csv`` (``evaluate``'s, for a (c))
+    on ``split``: ``scenes``, the mean ``view_psnr_abs`` with its t interval, the largest
+    ``view_spread``, and ``live`` (the mean >= ``LIVE_BOUND_DB``); None where the file has no
+    meter (a model without the view-specific branch)."""
+    import csv
+
+    with open(per_scene_csv, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["split"] == split and r.get("view_psnr_abs")]
+    if not rows:
+        return None
+    vals = [float(r["view_psnr_abs"]) for r in rows]
+    lo, hi = t_interval(vals)
+    mean = float(np.mean(vals))
+    return {"scenes": len(rows), "psnr_abs_db": mean, "low": lo, "high": hi,
+            "spread_rel_w": max(float(r["view_spread"]) for r in rows),
+            "live": mean >= LIVE_BOUND_DB}
+
+
 def summarise(readings: list[SceneReading]) -> Summary:
     """Means over scenes of ``readings`` (``read_batch``'s), with t intervals."""
     if not readings:
