@@ -228,6 +228,13 @@ def test_init_from_starts_finetuning_at_the_baseline(synth_root, tmp_path):
     with pytest.raises(ConfigError, match="start from a baseline"):
         model_from_config({"preset": "tiny", "variant": "agnostic",
                            "init_from": str(full.checkpoint_path)})
-    with pytest.raises(ConfigError, match="another configuration"):
-        model_from_config({"preset": "tiny", "variant": "full", "overrides": {"delta_rank": 2},
+    # another view-specific branch (a design change): all but the weights whose shape changed
+    other = model_from_config({"preset": "tiny", "variant": "full",
+                               "overrides": {"specific_hidden": 24, "proj_stride": 4},
+                               "init_from": str(full.checkpoint_path)})
+    fresh = [k for k, v in full.model.state_dict().items()
+             if not torch.equal(other.state_dict()[k], v)]
+    assert fresh and all(k.startswith("specific.hyper.") for k in fresh), fresh
+    with pytest.raises(ConfigError, match="another configuration"):  # H_a's width differs
+        model_from_config({"preset": "tiny", "variant": "full", "overrides": {"hyper_hidden": 8},
                            "init_from": str(full.checkpoint_path)})

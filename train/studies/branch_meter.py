@@ -20,7 +20,7 @@ import argparse
 import csv
 import logging
 import os
-import tempfile
+import shutil
 from pathlib import Path
 
 import torch
@@ -49,17 +49,22 @@ def load_model(spec: str):
     return load(checkpoint_path(spec), "cpu")
 
 
-def as_test_root(folder: Path, tmp: Path) -> Path:
-    """A dataset root whose ``test/`` stage is ``folder`` (a train stage's scenes scored like
-    test scenes), or ``folder`` itself when it is a test root."""
+def as_test_root(folder: Path, where: Path) -> Path:
+    """A dataset root whose ``test/`` stage holds ``folder``'s chunks (a train stage's scenes
+    scored like test scenes: hard links, or copies across file systems, in ``where``; the
+    chunk reader refuses links that leave their root), or ``folder`` itself when it is a test
+    root."""
     if (folder / "test").is_dir():
         return folder
-    root = tmp / folder.name
-    root.mkdir(parents=True, exist_ok=True)
-    link = root / "test"
-    if not link.exists():
-        os.symlink(folder.resolve(), link)
-    return root
+    stage = where / folder.resolve().parent.name / "test"
+    stage.mkdir(parents=True, exist_ok=True)
+    for f in folder.iterdir():
+        if f.suffix in (".torch", ".json") and not (stage / f.name).exists():
+            try:
+                os.link(f, stage / f.name)
+            except OSError:
+                shutil.copyfile(f, stage / f.name)
+    return stage.parent
 
 
 def read_set(model, root: Path, index: Path, scenes: int | None) -> list:
@@ -95,15 +100,14 @@ def main(argv=None) -> int:
             raise SystemExit(f"--sets: no {index}")
         sets[name] = (Path(folder), index, int(count) if count else None)
     rows, summaries = [], {}
-    with tempfile.TemporaryDirectory() as tmp:
-        for ckpt in args.checkpoints:
-            model = load_model(ckpt)
-            for name, (folder, index, count) in sets.items():
-                readings = read_set(model, as_test_root(folder, Path(tmp)), index, count)
-                s = summarise(readings)
-                summaries.setdefault(ckpt, {})[name] = s.as_dict()
-                rows += [{"checkpoint": ckpt, "set": name, **r.row()} for r in readings]
-                print(f"{ckpt} on {name}: {s.line()}", flush=True)
+    for ckpt in args.checkpoints:
+        model = load_model(ckpt)
+        for name, (folder, index, count) in sets.items():
+            readings = read_set(model, as_test_root(folder, out / "roots"), index, count)
+            s = summarise(readings)
+            summaries.setdefault(ckpt, {})[name] = s.as_dict()
+            rows += [{"checkpoint": ckpt, "set": name, **r.row()} for r in readings]
+            print(f"{ckpt} on {name}: {s.line()}", flush=True)
     with atomic_open(out / "meter.csv", "w") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()

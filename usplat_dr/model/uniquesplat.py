@@ -85,6 +85,8 @@ class UniqueSplatCfg:
     specific_layers: tuple[str, ...] = INJECTABLE
     embed_dim: int = 512  # e_a and e_s (paper: 512)
     hyper_hidden: int = 32  # width of the two hidden layers of H_a and H_s
+    # width of H_s's hidden layers where it differs from H_a's (None: hyper_hidden)
+    specific_hidden: int | None = None
     # Delta W as a rank-r product per layer (None: a full Delta W per view; see
     # hypernet/hypernetwork.py for the cost of each)
     delta_rank: int | None = 16
@@ -106,7 +108,8 @@ class UniqueSplatCfg:
     importance_hidden: int = 32  # width of the importance head and of the adaptation MLP
 
     def __post_init__(self):
-        check_bounds(self, {"embed_dim": 8192, "hyper_hidden": 4096, "delta_rank": 4096,
+        check_bounds(self, {"embed_dim": 8192, "hyper_hidden": 4096, "specific_hidden": 4096,
+                            "delta_rank": 4096,
                             "resnet_stages": 4, "feature_dim": 2048, "proj_samples": 2048,
                             "proj_stride": 256, "phi_channels": 4096,
                             "importance_hidden": 4096})
@@ -124,6 +127,9 @@ class UniqueSplatCfg:
                      "importance_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.specific_hidden is not None and self.specific_hidden < 1:
+            raise ValueError(f"specific_hidden must be >= 1 or None (H_a's width), got "
+                             f"{self.specific_hidden}")
         if not self.delta_init_std >= 0:
             raise ValueError(f"delta_init_std must be >= 0, got {self.delta_init_std}")
         if self.delta_rank is not None and self.delta_rank < 1:
@@ -263,7 +269,8 @@ class UniqueSplat(nn.Module):
                 cfg.resnet_stages, cfg.feature_dim, cfg.proj_samples, cfg.proj_temperature,
                 cfg.proj_stride, cfg.phi_channels, cfg.embed_dim)
             self.specific = SpecificHypernetwork(self.specific_specs, cfg.embed_dim,
-                                                 cfg.hyper_hidden, cfg.delta_rank,
+                                                 cfg.specific_hidden or cfg.hyper_hidden,
+                                                 cfg.delta_rank,
                                                  cfg.delta_init_std)
             self.view_embedding.features.resnet.load_torchvision(cfg.resnet_weights)
 

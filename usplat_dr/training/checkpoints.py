@@ -23,6 +23,8 @@ from usplat_dr.model.checkpoint import check_state_dict
 #: How a user opts in to full unpickling (named in the refusal's message).
 TRUST_HINT = "--trust-checkpoint (usplat eval/render/export-ply/train) or trust=True"
 
+log = logging.getLogger(__name__)
+
 
 def read_usplat_checkpoint(checkpoint: str | os.PathLike, map_location="cpu",
                            trust: bool = False) -> dict:
@@ -228,6 +230,10 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
         # train.trainable=view_specific): every weight
         model.load_state_dict({k: v.float() for k, v in sd.items()}, strict=True)
         return
+    if cfg.variant == "full" and model.cfg.variant == "full" and (
+            _without_branch(cfg) == _without_branch(model.cfg)):
+        _load_other_branch(model, path, sd)
+        return
     if cfg.variant != "baseline":
         raise ConfigError(f"model.init_from: {path} holds variant {cfg.variant!r} with another "
                           f"configuration than this model's; start from a baseline (a) "
@@ -246,6 +252,38 @@ def _without_budget(cfg: UniqueSplatCfg) -> dict:
     for key in ("importance", "importance_hidden", "resnet_weights"):
         d.pop(key)
     return d
+
+
+#: The fields of the view-specific branch (and the budget's): a (c) whose other fields match
+#: a checkpoint's starts from it with another branch (``_load_other_branch``).
+BRANCH_FIELDS = ("specific_hidden", "delta_rank", "delta_init_std", "resnet_stages",
+                 "resnet_weights", "feature_dim", "proj_samples", "proj_stride",
+                 "proj_temperature", "phi_channels", "specific_layers", "importance",
+                 "importance_hidden")
+
+
+def _without_branch(cfg: UniqueSplatCfg) -> dict:
+    """A model config's fields but the view-specific branch's and the budget's."""
+    d = cfg.to_dict()
+    for key in BRANCH_FIELDS:
+        d.pop(key)
+    return d
+
+
+def _load_other_branch(model, path: Path, sd: dict) -> None:
+    """A (c) from a (c) checkpoint whose view-specific branch is configured otherwise (a
+    design change of the branch, measured from a trained (c)): the primary network and H_a
+    exactly; of the branch, every weight whose name and shape match; the rest keep their
+    initialisation (logged)."""
+    own = model.state_dict()
+    take = {k: v.float() for k, v in sd.items() if k in own and own[k].shape == v.shape}
+    branch = ("view_embedding.", "specific.", "importance.")
+    missing = [k for k in own if k not in take]
+    assert all(k.startswith(branch) for k in missing), (path, missing)
+    model.load_state_dict(take, strict=False)
+    if missing:
+        log.info("model.init_from: %s: %d view-specific weight(s) start afresh (another "
+                 "configuration of the branch): %s", path, len(missing), ", ".join(missing))
 
 
 def _load_adding_importance(model, path: Path, cfg: UniqueSplatCfg, sd: dict) -> None:
