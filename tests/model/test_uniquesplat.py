@@ -487,3 +487,30 @@ def test_a_wrong_encoding_or_delta_w_names_the_argument():
         model(*args, encoding=grad, render=False)
     with pytest.raises(ValueError, match="name must be one of"):
         model.conv_spec("to_gaussians.1")
+
+
+def test_view_features_from_the_primary_network_read_it_without_training_it():
+    # E_H as the primary network's backbone features (view_features="primary"): Delta W
+    # depends on the images through them, and no gradient flows back into the encoder
+    torch.manual_seed(0)
+    model = UniqueSplat.from_preset("tiny", variant="full", view_features="primary",
+                                    delta_init_std=0.5)
+    assert not hasattr(model.view_embedding.features, "resnet")
+    args = scene(n=2)
+    cams = dict(target_extrinsics=args.target_extrinsics,
+                target_intrinsics=args.target_intrinsics, target_near=args.target_near,
+                target_far=args.target_far, near=args.near, far=args.far)
+    deltas = model.view_delta_w(args.images, args.extrinsics, args.intrinsics, **cams)
+    sum(d.u.square().sum() + d.v.square().sum() for d in deltas.values()).backward()
+    assert model.view_embedding.features.lateral.weight.grad.norm() > 0
+    assert all(p.grad is None for p in model.primary.parameters())  # detached
+    with torch.no_grad():
+        other = model.view_delta_w(args.images.flip(-1), args.extrinsics, args.intrinsics,
+                                   **cams)
+    assert any(not torch.allclose(other[k].u, deltas[k].u) for k in deltas)
+    with pytest.raises(ValueError, match="near and far"):
+        model.view_delta_w(args.images, args.extrinsics, args.intrinsics,
+                           args.target_extrinsics, args.target_intrinsics, args.target_near,
+                           args.target_far)
+    with pytest.raises(ValueError, match="view_features"):
+        UniqueSplat.from_preset("tiny", variant="full", view_features="vgg")

@@ -128,7 +128,8 @@ def read_batch(model, batch: dict, device: torch.device | str = "cpu",
                                 inputs.near, inputs.far)
         deltas = {k: full_delta(d) for k, d in model.view_delta_w(
             inputs.images, inputs.extrinsics, inputs.intrinsics, inputs.target_extrinsics,
-            inputs.target_intrinsics, inputs.target_near, inputs.target_far).items()}
+            inputs.target_intrinsics, inputs.target_near, inputs.target_far,
+            encoding=encoding).items()}
         weights = model.generated_weights()
         arms = {"own": deltas,
                 "mean": {k: scene_mean(d, b, n) for k, d in deltas.items()},

@@ -94,6 +94,10 @@ class UniqueSplatCfg:
     # is exactly 0 and (c) starts exactly at (a); > 0: it starts close to (a) and the
     # view-specific branch gets gradients from the first step; docs/learning.md)
     delta_init_std: float = 0.0
+    # E_H: "resnet18" (the paper: a ResNet18 on the context images) or "primary" (the
+    # primary network's backbone features, which it trained to match across views; read,
+    # never trained through: docs/model.md, "Is the branch live?")
+    view_features: str = "resnet18"
     resnet_stages: int = 4  # ResNet18 stages used by E_H (4: all of it)
     resnet_weights: str | None = None  # torchvision resnet18 .pth file (ImageNet)
     feature_dim: int = 64  # channels of F_c
@@ -127,6 +131,9 @@ class UniqueSplatCfg:
                      "importance_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.view_features not in ("resnet18", "primary"):
+            raise ValueError(f"view_features must be 'resnet18' or 'primary', got "
+                             f"{self.view_features!r}")
         if self.specific_hidden is not None and self.specific_hidden < 1:
             raise ValueError(f"specific_hidden must be >= 1 or None (H_a's width), got "
                              f"{self.specific_hidden}")
@@ -265,14 +272,17 @@ class UniqueSplat(nn.Module):
             head, i = s.name.split(".")
             heads[head][int(i)] = GeneratedConv(s)
         if cfg.variant == "full":
+            primary_channels = (dp.proj_feature.in_channels if cfg.view_features == "primary"
+                                else None)
             self.view_embedding = ViewSpecificEmbedding(
                 cfg.resnet_stages, cfg.feature_dim, cfg.proj_samples, cfg.proj_temperature,
-                cfg.proj_stride, cfg.phi_channels, cfg.embed_dim)
+                cfg.proj_stride, cfg.phi_channels, cfg.embed_dim, primary_channels)
             self.specific = SpecificHypernetwork(self.specific_specs, cfg.embed_dim,
                                                  cfg.specific_hidden or cfg.hyper_hidden,
                                                  cfg.delta_rank,
                                                  cfg.delta_init_std)
-            self.view_embedding.features.resnet.load_torchvision(cfg.resnet_weights)
+            if cfg.view_features == "resnet18":
+                self.view_embedding.features.resnet.load_torchvision(cfg.resnet_weights)
 
     # ---- construction -------------------------------------------------------------------
 
@@ -409,7 +419,7 @@ class UniqueSplat(nn.Module):
             if delta_w is None:
                 weights, deltas, aux = self._target_weights(
                     images, extrinsics, intrinsics, target_extrinsics, target_intrinsics,
-                    target_near, target_far)
+                    target_near, target_far, depth)
             else:
                 weights = dict(zip(self.cfg.target_layers, self.agnostic_weights()))
                 deltas, aux = self._check_delta_w(delta_w, b * n), {}
@@ -526,18 +536,27 @@ class UniqueSplat(nn.Module):
                      extrinsics: Float[Tensor, "b v 4 4"], intrinsics: Float[Tensor, "b v 3 3"],
                      target_extrinsics: Float[Tensor, "b n 4 4"],
                      target_intrinsics: Float[Tensor, "b n 3 3"],
-                     target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"]
-                     ) -> dict[str, LayerDelta]:
+                     target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"],
+                     near: Float[Tensor, "b v"] | None = None,
+                     far: Float[Tensor, "b v"] | None = None,
+                     encoding: DepthOutputs | None = None) -> dict[str, LayerDelta]:
         """The view-specific branch's Delta W for each target (layer name -> ``LayerDelta``
         for B*N targets, target n of scene b at b N + n), what ``forward`` adds to W; ``{}``
         for a model without the branch. ``forward(delta_w=...)`` takes it back (edited, or
-        as ``usplat_dr.evaluation.view_specificity`` does, averaged over a scene's targets)."""
+        as ``usplat_dr.evaluation.view_specificity`` does, averaged over a scene's targets).
+        With ``view_features="primary"`` E_H reads the encoder's features: ``encoding``
+        (``encode``'s), or the context ``near``/``far`` to compute it."""
         if self.specific is None:
             return {}
         self.check_targets(images.shape[0], target_extrinsics, target_intrinsics, target_near,
                            target_far)
+        if self.cfg.view_features == "primary" and encoding is None:
+            if near is None or far is None:
+                raise ValueError("near and far (or encoding) are needed: this model's E_H "
+                                 "reads the primary network's features")
+            encoding = self.encode(images, extrinsics, intrinsics, near, far)
         return self._target_weights(images, extrinsics, intrinsics, target_extrinsics,
-                                    target_intrinsics, target_near, target_far)[1]
+                                    target_intrinsics, target_near, target_far, encoding)[1]
 
     def generated_weights(self) -> dict[str, tuple[Tensor, Tensor]]:
         """W, the view-agnostic weights of the target layers: layer name -> (weight, bias)
@@ -549,17 +568,22 @@ class UniqueSplat(nn.Module):
                         intrinsics: Float[Tensor, "b v 3 3"],
                         target_extrinsics: Float[Tensor, "b n 4 4"],
                         target_intrinsics: Float[Tensor, "b n 3 3"],
-                        target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"]
-                        ) -> tuple[dict, dict, dict]:
+                        target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"],
+                        depth: DepthOutputs | None = None) -> tuple[dict, dict, dict]:
         """The generated layers' weights: ``W`` (layer -> (weight, bias)) from the
         view-agnostic branch, ``Delta W`` (layer -> per-target low-rank factors) from the
         view-specific branch, and the branch's diagnostics (embedding, Proj's correlation
         and weights) for ``out.aux``. Either dict is empty where its branch is absent."""
         aux, deltas = {}, {}
         if self.specific is not None:
+            features = None
+            if self.cfg.view_features == "primary":  # the encoder's, (v b) -> [B, V, ...]
+                f = depth.features_fullres
+                b, v = images.shape[:2]
+                features = f.reshape(v, b, *f.shape[1:]).transpose(0, 1)
             e_s, proj_aux = self.view_embedding(images, extrinsics, intrinsics,
                                                 target_extrinsics, target_intrinsics,
-                                                target_near, target_far)
+                                                target_near, target_far, features)
             aux.update(embedding=e_s, correlation=proj_aux["correlation"],
                        weights=proj_aux["weights"])
             deltas = {s.name: d for s, d in zip(self.specific_specs,

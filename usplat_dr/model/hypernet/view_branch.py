@@ -57,6 +57,23 @@ class ContextFeatures(nn.Module):
         return fused.unflatten(0, (b, v))
 
 
+class PrimaryFeatures(nn.Module):
+    """E_H as a reader of the primary network: its backbone's full-resolution features (the
+    depth predictor's ``features_fullres``: CNN + transformer, trained to match across views),
+    area-averaged to the stride-8 grid and mapped to ``feature_dim`` channels by a 1x1 conv.
+    Detached: the branch reads the encoder and never trains it."""
+
+    def __init__(self, in_channels: int, feature_dim: int = 64):
+        super().__init__()
+        self.lateral = nn.Conv2d(in_channels, feature_dim, 1)
+
+    def forward(self, features: Float[Tensor, "b v c h w"]) -> Float[Tensor, "b v f h8 w8"]:
+        b, v, _, h, w = features.shape
+        x = F.adaptive_avg_pool2d(features.detach().flatten(0, 1).float(),
+                                  (max(h // 8, 1), max(w // 8, 1)))
+        return self.lateral(x).unflatten(0, (b, v))
+
+
 def camera_channels(extrinsics: Float[Tensor, "b v 4 4"], intrinsics: Float[Tensor, "b v 3 3"],
                     target_extrinsics: Float[Tensor, "b n 4 4"],
                     target_intrinsics: Float[Tensor, "b n 3 3"], grid: tuple[int, int]
@@ -102,20 +119,30 @@ class ViewSpecificEmbedding(nn.Module):
 
     def __init__(self, resnet_stages: int, feature_dim: int, num_samples: int,
                  temperature: float, proj_stride: int, phi_channels: tuple[int, ...],
-                 embed_dim: int):
+                 embed_dim: int, primary_channels: int | None = None):
         super().__init__()
         self.proj_stride = proj_stride
-        self.features = ContextFeatures(resnet_stages, feature_dim)
+        # E_H: a ResNet18 on the images (the paper), or the primary network's features
+        # (``primary_channels``, their channel count; ``forward``'s ``context_features``)
+        self.features = (ContextFeatures(resnet_stages, feature_dim) if primary_channels is None
+                         else PrimaryFeatures(primary_channels, feature_dim))
         self.proj = EpipolarProjection(num_samples, temperature)
         self.phi = Phi(feature_dim + 6, phi_channels, embed_dim)
 
     def forward(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
                 intrinsics: Float[Tensor, "b v 3 3"], target_extrinsics: Float[Tensor, "b n 4 4"],
                 target_intrinsics: Float[Tensor, "b n 3 3"], target_near: Float[Tensor, "b n"],
-                target_far: Float[Tensor, "b n"]) -> tuple[Tensor, dict]:
+                target_far: Float[Tensor, "b n"], context_features: Tensor | None = None
+                ) -> tuple[Tensor, dict]:
         h, w = images.shape[-2:]
         grid = (max(h // self.proj_stride, 1), max(w // self.proj_stride, 1))
-        f_c = self.features(images)
+        if isinstance(self.features, PrimaryFeatures):
+            if context_features is None:
+                raise ValueError("context_features: this E_H reads the primary network's "
+                                 "features [B, V, C, H, W]; pass them")
+            f_c = self.features(context_features)
+        else:
+            f_c = self.features(images)
         f_t, aux = self.proj(f_c, extrinsics, intrinsics, target_extrinsics, target_intrinsics,
                              target_near, target_far, grid)
         cams = camera_channels(extrinsics, intrinsics, target_extrinsics, target_intrinsics,
