@@ -27,6 +27,7 @@ import torch
 
 import usplat_dr  # noqa: F401  (libLLVM first)
 from usplat_dr.data.dataset import dataset_from_section
+from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.view_specificity import read_batch, summarise
 from usplat_dr.io import atomic_open, write_json
 from usplat_dr.training.checkpoints import load
@@ -78,12 +79,47 @@ def read_set(model, root: Path, index: Path, scenes: int | None) -> list:
     return readings
 
 
+def embedding_spread(model, root: Path, index: Path, scenes: int | None) -> dict:
+    """How much e_s and H_s's second hidden layer differ between a scene's targets ("within":
+    RMS distance to the scene's mean) against between scenes (RMS distance of the scene means
+    to their mean), and their mean norm: what Delta W can vary with at all."""
+    kept = {}
+    hook = model.specific.hyper.net[3].register_forward_hook(
+        lambda mod, inp, out: kept.__setitem__("hidden", out.detach()))
+    values: dict[str, list] = {"e_s": [], "hidden": []}
+    ds = dataset_from_section({"name": "synth", "roots": [str(root)], "image_shape": [64, 64],
+                               "evaluation_index": str(index)}, "test")
+    with torch.no_grad():
+        for i, example in enumerate(ds):
+            if scenes is not None and i == scenes:
+                break
+            a = model_inputs(torch.utils.data.default_collate([example]))
+            e_s, _ = model.view_embedding(a.images, a.extrinsics, a.intrinsics,
+                                          a.target_extrinsics, a.target_intrinsics,
+                                          a.target_near, a.target_far)
+            model.specific(e_s.flatten(0, 1))
+            values["e_s"].append(e_s[0])
+            values["hidden"].append(kept["hidden"])
+    hook.remove()
+    out = {}
+    for name, xs in values.items():
+        x = torch.stack(xs)  # [S, N, D]
+        within = (x - x.mean(1, keepdim=True)).square().sum(-1).mean().sqrt()
+        between = (x.mean(1) - x.mean((0, 1))).square().sum(-1).mean().sqrt()
+        out[name] = {"within": within.item(), "between": between.item(),
+                     "norm": x.norm(dim=-1).mean().item()}
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoints", nargs="+", required=True)
     p.add_argument("--sets", nargs="+", required=True, metavar="NAME=FOLDER[:SCENES]")
     p.add_argument("--out", required=True)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--embedding", action="store_true",
+                   help="also how much e_s and H_s's hidden layer vary within and between "
+                        "scenes (models with the ResNet18 E_H)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch.set_num_threads(args.threads)
@@ -108,6 +144,13 @@ def main(argv=None) -> int:
             summaries.setdefault(ckpt, {})[name] = s.as_dict()
             rows += [{"checkpoint": ckpt, "set": name, **r.row()} for r in readings]
             print(f"{ckpt} on {name}: {s.line()}", flush=True)
+            if args.embedding:
+                spread = embedding_spread(model, as_test_root(folder, out / "roots"), index,
+                                          count)
+                summaries[ckpt][name]["embedding"] = spread
+                print("  " + "; ".join(
+                    f"{k}: within a scene {v['within']:.3g}, between scenes {v['between']:.3g},"
+                    f" norm {v['norm']:.3g}" for k, v in spread.items()), flush=True)
     with atomic_open(out / "meter.csv", "w") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
