@@ -101,14 +101,22 @@ def embedding_spread(model, root: Path, index: Path, scenes: int | None) -> dict
             values["e_s"].append(e_s[0])
             values["hidden"].append(kept["hidden"])
     hook.remove()
-    out = {}
-    for name, xs in values.items():
-        x = torch.stack(xs)  # [S, N, D]
-        within = (x - x.mean(1, keepdim=True)).square().sum(-1).mean().sqrt()
-        between = (x.mean(1) - x.mean((0, 1))).square().sum(-1).mean().sqrt()
-        out[name] = {"within": within.item(), "between": between.item(),
-                     "norm": x.norm(dim=-1).mean().item()}
-    return out
+    return {name: within_between(torch.stack(xs)) for name, xs in values.items()}
+
+
+def within_between(x: torch.Tensor) -> dict:
+    """``x`` [S scenes, N targets, D]: the RMS distance of a target's vector to its scene's
+    mean ("within"), of the scene means to their mean ("between"), and the mean norm.
+
+    Examples:
+        >>> x = torch.tensor([[[1.0, 0], [3, 0]], [[5, 0], [7, 0]]])  # scene means 2 and 6
+        >>> within_between(x)
+        {'within': 1.0, 'between': 2.0, 'norm': 4.0}
+    """
+    within = (x - x.mean(1, keepdim=True)).square().sum(-1).mean().sqrt()
+    between = (x.mean(1) - x.mean((0, 1))).square().sum(-1).mean().sqrt()
+    return {"within": within.item(), "between": between.item(),
+            "norm": x.norm(dim=-1).mean().item()}
 
 
 def main(argv=None) -> int:
