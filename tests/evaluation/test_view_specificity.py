@@ -51,7 +51,9 @@ def test_the_zero_initialised_start_reads_exactly_zero():
     torch.manual_seed(0)
     model = UniqueSplat.from_preset("tiny", variant="full")  # Delta W = 0 exactly
     args = scene(n=3)
+    assert model.training
     (r,) = read_batch(model, batch_of(args, 3))
+    assert model.training  # the meter computes in evaluation mode and gives the mode back
     # Delta W is exactly 0 for every target: the three renders are the same arithmetic
     assert all(v == 0 for v in r.spread.values()) and all(v == 0 for v in r.size.values())
     assert r.d_mean == r.d_mean_abs == r.d_zero == r.d_zero_abs == 0

@@ -508,6 +508,23 @@ def test_view_features_from_the_primary_network_read_it_without_training_it():
         other = model.view_delta_w(args.images.flip(-1), args.extrinsics, args.intrinsics,
                                    **cams)
     assert any(not torch.allclose(other[k].u, deltas[k].u) for k in deltas)
+    # two scenes in a batch ((v b) order inside the encoder): each gets its own Delta W
+    two = scene(n=2, b=2, seed=3)
+    cams2 = dict(target_extrinsics=two.target_extrinsics,
+                 target_intrinsics=two.target_intrinsics, target_near=two.target_near,
+                 target_far=two.target_far)
+    with torch.no_grad():
+        both = model.view_delta_w(two.images, two.extrinsics, two.intrinsics, **cams2,
+                                  near=two.near, far=two.far)
+        for b in range(2):
+            one = model.view_delta_w(two.images[b:b + 1], two.extrinsics[b:b + 1],
+                                     two.intrinsics[b:b + 1],
+                                     **{k: v[b:b + 1] for k, v in cams2.items()},
+                                     near=two.near[b:b + 1], far=two.far[b:b + 1])
+            for k in both:  # float32 batched against single convolutions
+                torch.testing.assert_close(both[k].u[2 * b:2 * b + 2], one[k].u,
+                                           rtol=1e-4, atol=1e-6)
+    assert all(not torch.allclose(both[k].u[:2], both[k].u[2:]) for k in both)  # other images
     with pytest.raises(ValueError, match="near and far"):
         model.view_delta_w(args.images, args.extrinsics, args.intrinsics,
                            args.target_extrinsics, args.target_intrinsics, args.target_near,

@@ -239,6 +239,9 @@ def offset_index(index: str, offsets: list[int], out: Path) -> str:
         lo, hi = sorted(e["context"])
         if all(0 < o < hi - lo for o in offsets):
             entries[scene] = {"context": e["context"], "target": [lo + o for o in offsets]}
+    if not entries:
+        raise SystemExit(f"--targets {offsets}: no scene of {index} has these frames between "
+                         f"its context views (offsets must lie in 1..gap-1)")
     out.mkdir(parents=True, exist_ok=True)
     path = out / "evaluation_index_offsets.json"
     write_json(path, entries)

@@ -31,7 +31,6 @@ import argparse
 import csv
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -197,24 +196,35 @@ def main(argv=None) -> int:
     from usplat_dr.data.view_sampler import read_evaluation_index
     from usplat_dr.evaluation import synthetic_indices
     from usplat_dr.io import atomic_open, write_json
+    from usplat_dr.training.checkpoints import training_image_shape
 
     model = frozen_baseline(p, args.checkpoint)
     specs = tuple(model.conv_spec(name) for name in INJECTABLE_ALL)
     index = between_frames_index(read_evaluation_index(
         synthetic_indices(args.data, [args.split])[args.split]))
+    if not index:
+        p.error(f"--split {args.split}: no scene of {args.data} has 4 or more frames between "
+                f"its context views")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    settings = {k: v for k, v in vars(args).items() if k not in ("scenes", "out")}
     rows = []
-    if (out / "per_scene.csv").is_file():  # resume
+    if (out / "per_scene.csv").is_file():  # resume: the same settings only
+        old = json.loads((out / "settings.json").read_text())
+        if old != settings:
+            p.error(f"--out {out} holds a run with other settings ({old}); choose another "
+                    f"--out or delete it")
         with open(out / "per_scene.csv") as f:
             rows = [{k: v if k == "scene" else float(v) for k, v in r.items()}
                     for r in csv.DictReader(f)]
+    write_json(out / "settings.json", settings)
     done = {r["scene"] for r in rows}
     t0 = time.perf_counter()
-    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
-        json.dump(index, f)
-    ds = dataset_from_section({"name": "synth", "roots": [args.data], "image_shape": [64, 64],
-                               "evaluation_index": f.name}, "test")
+    write_json(out / "evaluation_index_between.json", index)
+    shape = training_image_shape(args.checkpoint) or (64, 64)
+    ds = dataset_from_section({"name": "synth", "roots": [args.data], "image_shape": list(shape),
+                               "evaluation_index": str(out / "evaluation_index_between.json")},
+                              "test")
     for s, example in enumerate(ds):
         if s == args.scenes:
             break

@@ -124,12 +124,15 @@ def read_batch(model, batch: dict, device: torch.device | str = "cpu",
     was_training = model.training
     model.eval()
     try:
-        encoding = model.encode(inputs.images, inputs.extrinsics, inputs.intrinsics,
-                                inputs.near, inputs.far)
-        deltas = {k: full_delta(d) for k, d in model.view_delta_w(
-            inputs.images, inputs.extrinsics, inputs.intrinsics, inputs.target_extrinsics,
-            inputs.target_intrinsics, inputs.target_near, inputs.target_far,
-            encoding=encoding).items()}
+        with model._autocast(inputs.images.device):  # the precision forward would use
+            encoding = model.encode(inputs.images, inputs.extrinsics, inputs.intrinsics,
+                                    inputs.near, inputs.far)
+            deltas = {k: full_delta(d) for k, d in model.view_delta_w(
+                inputs.images, inputs.extrinsics, inputs.intrinsics,
+                inputs.target_extrinsics, inputs.target_intrinsics, inputs.target_near,
+                inputs.target_far, encoding=encoding).items()}
+        deltas = {k: LayerDelta(bias=d.bias.float(), full=d.full.float())
+                  for k, d in deltas.items()}
         weights = model.generated_weights()
         arms = {"own": deltas,
                 "mean": {k: scene_mean(d, b, n) for k, d in deltas.items()},

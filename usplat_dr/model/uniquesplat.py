@@ -693,9 +693,12 @@ class UniqueSplat(nn.Module):
             rows.append(("budget: importance head + adaptation", count(self.importance)))
         if self.specific is not None:
             ve = self.view_embedding
-            rows += [("view-specific: E_H ResNet18" + (
-                f" ({self.cfg.resnet_stages} stages, no fc)"), count(ve.features.resnet)),
-                     ("view-specific: lateral convs + Proj temperature",
+            if self.cfg.view_features == "resnet18":
+                e_h = f"view-specific: E_H ResNet18 ({self.cfg.resnet_stages} stages, no fc)"
+                rows.append((e_h, count(ve.features.resnet)))
+            else:
+                rows.append(("view-specific: E_H the primary's features (no weights)", 0))
+            rows += [("view-specific: lateral convs + Proj temperature",
                       count(ve.features.lateral) + count(ve.proj)),
                      ("view-specific: phi", count(ve.phi)),
                      ("view-specific: H_s", count(self.specific))]

@@ -233,6 +233,9 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
     if cfg.variant == "full" and model.cfg.variant == "full" and (
             _without_branch(cfg) == _without_branch(model.cfg)):
         _load_other_branch(model, path, sd)
+        if model.cfg.delta_init_std > 0 and cfg.delta_rank == model.cfg.delta_rank:
+            log.warning("model.init_from: %s replaces H_s's initialisation, so delta_init_std "
+                        "has no effect; model.open_gate_std adds noise after loading", path)
         return
     if cfg.variant != "baseline":
         raise ConfigError(f"model.init_from: {path} holds variant {cfg.variant!r} with another "
@@ -256,7 +259,8 @@ def _without_budget(cfg: UniqueSplatCfg) -> dict:
 
 #: The fields of the view-specific branch (and the budget's): a (c) whose other fields match
 #: a checkpoint's starts from it with another branch (``_load_other_branch``).
-BRANCH_FIELDS = ("specific_hidden", "delta_rank", "delta_init_std", "resnet_stages",
+BRANCH_FIELDS = ("specific_hidden", "view_features", "delta_rank", "delta_init_std",
+                 "resnet_stages",
                  "resnet_weights", "feature_dim", "proj_samples", "proj_stride",
                  "proj_temperature", "phi_channels", "specific_layers", "importance",
                  "importance_hidden")
@@ -279,7 +283,10 @@ def _load_other_branch(model, path: Path, sd: dict) -> None:
     take = {k: v.float() for k, v in sd.items() if k in own and own[k].shape == v.shape}
     branch = ("view_embedding.", "specific.", "importance.")
     missing = [k for k in own if k not in take]
-    assert all(k.startswith(branch) for k in missing), (path, missing)
+    if not all(k.startswith(branch) for k in missing):  # (_without_branch matched: a bug)
+        other = [k for k in missing if not k.startswith(branch)]
+        raise RuntimeError(f"model.init_from: {path}: weights outside the view-specific "
+                           f"branch do not match: {other}")
     model.load_state_dict(take, strict=False)
     if missing:
         log.info("model.init_from: %s: %d view-specific weight(s) start afresh (another "

@@ -226,6 +226,12 @@ class RootCfg:
                 raise ConfigError(f"{key}={value!r} is out of range (set in "
                                   f"{where_set(origins, key)}): {requirement}")
         check_sampler_ranges(root.dataset.view_sampler, origins)
+        tc = root.train
+        if tc.keep_every % tc.checkpoint_every:
+            raise ConfigError(f"train.keep_every={tc.keep_every} is not a multiple of "
+                              f"train.checkpoint_every={tc.checkpoint_every} (set in "
+                              f"{where_set(origins, 'train.keep_every')}): checkpoints are "
+                              f"kept where one is saved; make it a multiple, or 0")
         return root
 
 

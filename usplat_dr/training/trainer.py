@@ -755,7 +755,9 @@ class Trainer:
         validating = self.rank == 0 and (self.step % tc.validate_every == 0
                                          or self.step == tc.steps)
         if run_log is not None:
-            meter = self.view_meter() if validating and last else {}
+            # the meter on the validation scene, where metrics.csv writes this step's row
+            logged = self.step % tc.log_every == 0 or self.step == tc.steps
+            meter = self.view_meter() if validating and logged and last else {}
             run_log.log(self.step, {**last, **meter}, self.skipped)
         if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
             self.save()
@@ -793,8 +795,9 @@ class Trainer:
 
     def view_meter(self) -> dict:
         """The view-specificity meter (``usplat_dr.evaluation.view_specificity``) on the
-        validation scene, for metrics.csv at validation steps: ``view_spread`` (how much Delta
-        W differs between its targets, relative to ||W||, the largest over the layers) and,
+        validation scene, for metrics.csv at validation steps that write a row:
+        ``view_spread`` (how much Delta W differs between its targets, relative to ||W||, the
+        largest over the layers) and,
         in dB, ``view_psnr_abs`` (mean |PSNR(per-target Delta W) - PSNR(the scene's mean)|)
         and ``view_psnr_zero`` (PSNR(per-target) - PSNR(Delta W = 0)). ``{}`` for a model
         without the view-specific branch or a validation scene with one target."""
