@@ -297,7 +297,7 @@ def write_verdict(args, out: Path, eval_name: str, suffix: str, where: str) -> s
             f"`{args.init}`, evaluated on {where}\n\n")
     if checks:
         text += ("## Manipulation check: is each (c)'s view-specific branch live?\n\n"
-                 "| seed | scenes | Delta W spread / ||W|| | mean abs PSNR(own) - PSNR(scene "
+                 "| seed | scenes | Delta W spread (of norm W) | mean abs PSNR(own) - PSNR(scene "
                  "mean) [95% t] | live? |\n|---|---|---|---|---|\n")
         for s, c in checks.items():
             text += (f"| {s} | {c['scenes']} | {c['spread_rel_w']:.1e} | {c['psnr_abs_db']:.4f} "

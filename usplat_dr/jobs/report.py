@@ -71,7 +71,7 @@ def registered_lines(registered: dict | None) -> list[str]:
         lines.append(f"| {r['set']} | {r['arm']} | {r['mean']:+.3f} | [{r['low']:+.3f}, "
                      f"{r['high']:+.3f}] | [{r['seed_low']:+.3f}, {r['seed_high']:+.3f}] | "
                      f"{r['seeds']} x {r['scenes']} | **{r['label']}** | "
-                     f"{r.get('branch_live', 'not measured')} |")
+                     f"{r.get('branch_live', 'not measured').replace('|', '/')} |")
     if registered.get("note"):
         lines += ["", registered["note"]]
     return [*lines, ""]
@@ -178,7 +178,7 @@ def meter_lines(r: DemoResults) -> list[str]:
               "when Delta W is the same for every view), and minus PSNR with Delta W = 0; 95% t "
               "intervals over scenes. A (c) counts as view-specific (live) at >= "
               f"{LIVE_BOUND_DB} dB."), "",
-             ("| model | scenes | Delta W spread / ||W|| | abs PSNR(own) - PSNR(scene mean) | "
+             ("| model | scenes | Delta W spread (of norm W) | abs PSNR(own) - PSNR(scene mean) | "
               "PSNR(own) - PSNR(Delta W = 0) | live? |"), "|---|---|---|---|---|---|"]
     for name, m in rows:
         a, z = m["d_mean_abs"], m["d_zero"]
