@@ -119,17 +119,50 @@ def within_between(x: torch.Tensor) -> dict:
             "norm": x.norm(dim=-1).mean().item()}
 
 
+def chart(runs: list[str], path: Path) -> Path:
+    """The meter of each run's validation steps (``metrics.csv``'s ``view_spread``, log scale)
+    against the step: does Delta W's spread across targets grow while the branch trains?"""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from usplat_dr.training.run_log import curve, read_metrics
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for run in runs:
+        steps, values = curve(read_metrics(run), "view_spread")
+        ax.plot(steps, values, marker="o", label=Path(run).name)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("Delta W spread across targets / norm of W")
+    ax.set_title("The view-specificity meter on the validation scene while the branch trains")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoints", nargs="+", required=True)
-    p.add_argument("--sets", nargs="+", required=True, metavar="NAME=FOLDER[:SCENES]")
+    p.add_argument("--checkpoints", nargs="+")
+    p.add_argument("--sets", nargs="+", metavar="NAME=FOLDER[:SCENES]")
     p.add_argument("--out", required=True)
+    p.add_argument("--chart", nargs="+", metavar="RUN",
+                   help="instead, chart these training runs' metrics.csv meter columns into "
+                        "OUT (a PNG)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--embedding", action="store_true",
                    help="also how much e_s and H_s's hidden layer vary within and between "
                         "scenes (models with the ResNet18 E_H)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    if args.chart:
+        print(chart(args.chart, Path(args.out)))
+        return 0
+    if not args.checkpoints or not args.sets:
+        p.error("--checkpoints and --sets are required (unless --chart)")
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
