@@ -1,10 +1,8 @@
-"""train/studies/oracle_transfer.py: the frames it fits and scores, its interpolated and linear
-Delta W against dense float64 references, and at zero steps every predictor renders (a); and
-oracle_delta.py's target offsets."""
+"""train/studies/oracle_delta.py --between-frames: the frames it fits and scores, its
+interpolated and linear Delta W against dense float64 references, and at zero steps every
+predictor renders (a); and its target offsets (--targets)."""
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,11 +15,7 @@ from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.hypernet.hypernetwork import LayerDelta
 
-SCRIPT = Path(__file__).parents[2] / "train" / "studies" / "oracle_transfer.py"
-sys.modules.setdefault("oracle_delta", oracle)  # the script imports its sibling by name
-spec = importlib.util.spec_from_file_location("oracle_transfer", SCRIPT)
-transfer = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(transfer)
+transfer = oracle  # oracle_delta.py --between-frames
 
 
 def test_frames_between_the_context_views_become_targets(tmp_path):

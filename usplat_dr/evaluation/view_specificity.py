@@ -29,6 +29,7 @@ Examples:
     (0.5, 0.5)
 """
 
+import csv
 import math
 from dataclasses import dataclass, field
 
@@ -211,8 +212,6 @@ def manipulation_check(per_scene_csv, split: str = "standard") -> dict | None:
     on ``split``: ``scenes``, the mean ``view_psnr_abs`` with its t interval, the largest
     ``view_spread``, and ``live`` (the mean >= ``LIVE_BOUND_DB``); None where the file has no
     meter (a model without the view-specific branch)."""
-    import csv
-
     with open(per_scene_csv, newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["split"] == split and r.get("view_psnr_abs")]
     if not rows:
