@@ -797,10 +797,10 @@ class Trainer:
         """The view-specificity meter (``usplat_dr.evaluation.view_specificity``) on the
         validation scene, for metrics.csv at validation steps that write a row:
         ``view_spread`` (how much Delta W differs between its targets, relative to ||W||, the
-        largest over the layers) and,
-        in dB, ``view_psnr_abs`` (mean |PSNR(per-target Delta W) - PSNR(the scene's mean)|)
-        and ``view_psnr_zero`` (PSNR(per-target) - PSNR(Delta W = 0)). ``{}`` for a model
-        without the view-specific branch or a validation scene with one target."""
+        largest over the layers) and, in dB, ``view_psnr_abs`` (mean |PSNR(per-target Delta
+        W) - PSNR(the scene's mean)|) and ``view_psnr_zero`` (PSNR(per-target) - PSNR(Delta W
+        = 0)). ``{}`` for a model without the view-specific branch or a validation scene with
+        one target. Rank 0 only (no collectives): the other ranks never call it."""
         batch = self._val_batch
         if (batch is None or getattr(self.model, "specific", None) is None
                 or batch["target"]["image"].shape[1] < 2):
