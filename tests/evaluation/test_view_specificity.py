@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from tests.model.test_uniquesplat import scene
+from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.evaluation.view_specificity import (
     LIVE_BOUND_DB,
     full_delta,
@@ -18,7 +19,6 @@ from usplat_dr.evaluation.view_specificity import (
     read_batch,
     scene_mean,
     summarise,
-    t_interval,
 )
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.hypernet.hypernetwork import LayerDelta

@@ -468,7 +468,7 @@ def _with_parts(fit: DeltaFit, parts: dict) -> DeltaFit:
 
 
 def t_summary(values: list[float]) -> dict:
-    from usplat_dr.evaluation.view_specificity import t_interval
+    from usplat_dr.evaluation.verdict import t_interval
 
     lo, hi = t_interval(values)
     return {"mean": sum(values) / len(values), "low": lo, "high": hi,

@@ -99,23 +99,29 @@ class Comparison:
         return "inconclusive"
 
 
+def t_interval(values, level: float = 0.95) -> tuple[float, float]:
+    """Student's t interval of the mean of ``values`` (NaN entries left out; NaN with fewer
+    than 2)."""
+    from scipy.stats import t as student_t  # only here (import time)
+
+    a = np.asarray(values, dtype=np.float64)
+    a = a[~np.isnan(a)]
+    if a.size < 2:
+        return float("nan"), float("nan")
+    half = student_t.ppf(0.5 + level / 2, a.size - 1) * a.std(ddof=1) / np.sqrt(a.size)
+    return float(a.mean() - half), float(a.mean() + half)
+
+
 def seed_interval(diffs: np.ndarray, level: float = 0.95) -> tuple[float, float]:
     """Student's t interval of the mean over the per-seed means of ``diffs`` [seeds, scenes]
     (NaN entries left out of each seed's mean): what a new training seed would give, the
     scenes held fixed. NaN with one seed (no spread to estimate)."""
-    from scipy.stats import t as student_t  # only here (import time)
-
     diffs = np.asarray(diffs, dtype=np.float64)
     if diffs.ndim != 2 or diffs.size == 0:
         raise ValueError(f"diffs must be a non-empty [seeds, scenes] array, got {diffs.shape}")
     with np.errstate(invalid="ignore"):
         means = np.nanmean(diffs, 1)
-    means = means[~np.isnan(means)]
-    if means.size < 2:
-        return float("nan"), float("nan")
-    half = student_t.ppf(0.5 + level / 2, means.size - 1) * means.std(ddof=1) / np.sqrt(
-        means.size)
-    return float(means.mean() - half), float(means.mean() + half)
+    return t_interval(means, level)
 
 
 def bootstrap_interval(diffs: np.ndarray, samples: int = 10_000, seed: int = 0,

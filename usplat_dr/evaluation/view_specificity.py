@@ -30,7 +30,6 @@ Examples:
 """
 
 import csv
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +38,7 @@ from torch import Tensor
 
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.metrics import psnr
+from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.model.hypernet.hypernetwork import LayerDelta
 
 #: The manipulation check's bound (dB): a (c) counts as view-specific ("live") when the mean
@@ -160,18 +160,6 @@ def read_batch(model, batch: dict, device: torch.device | str = "cpu",
             d_mean_abs=float(dm.abs().mean()), d_zero=float(dz.mean()),
             d_zero_abs=float(dz.abs().mean())))
     return readings
-
-
-def t_interval(values, level: float = 0.95) -> tuple[float, float]:
-    """Student's t interval of the mean of ``values`` (NaN with fewer than 2)."""
-    from scipy.stats import t as student_t  # only here (import time)
-
-    a = np.asarray(values, dtype=np.float64)
-    a = a[~np.isnan(a)]
-    if a.size < 2:
-        return float("nan"), float("nan")
-    half = student_t.ppf(0.5 + level / 2, a.size - 1) * a.std(ddof=1) / math.sqrt(a.size)
-    return float(a.mean() - half), float(a.mean() + half)
 
 
 @dataclass(frozen=True)

@@ -221,19 +221,18 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
         cfg, sd = _model_state(path, state)
     except ValueError as e:
         raise ConfigError(f"model.init_from: {e}") from None
-    if model.cfg.importance and _without_budget(cfg) == _without_budget(model.cfg):
+    if model.cfg.importance and (_config_without(cfg, BUDGET_FIELDS)
+                                 == _config_without(model.cfg, BUDGET_FIELDS)):
         _load_adding_importance(model, path, cfg, sd)
         return
-    if cfg.variant != "baseline" and _without_budget(cfg) == _without_budget(model.cfg) and (
-            cfg.importance == model.cfg.importance):
-        # the same model (e.g. the shipped (c), to train its view-specific branch further:
-        # train.trainable=view_specific): every weight
-        model.load_state_dict({k: v.float() for k, v in sd.items()}, strict=True)
-        return
-    if cfg.variant == "full" and model.cfg.variant == "full" and (
-            _without_branch(cfg) == _without_branch(model.cfg)):
-        _load_other_branch(model, path, sd)
-        if model.cfg.delta_init_std > 0 and cfg.delta_rank == model.cfg.delta_rank:
+    if cfg.variant == model.cfg.variant != "baseline" and (
+            cfg.importance == model.cfg.importance) and (
+            _config_without(cfg, BRANCH_FIELDS) == _config_without(model.cfg, BRANCH_FIELDS)):
+        # the same (b) or (c) (e.g. the shipped (c), to train its view-specific branch further:
+        # train.trainable=view_specific: every weight), or a (c) whose branch is configured
+        # otherwise
+        fresh = _load_matching(model, path, sd)
+        if model.cfg.delta_init_std > 0 and not any(k.startswith("specific.") for k in fresh):
             log.warning("model.init_from: %s replaces H_s's initialisation, so delta_init_std "
                         "has no effect; model.open_gate_std adds noise after loading", path)
         return
@@ -248,49 +247,42 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
     model.load_mvsplat(primary)
 
 
-def _without_budget(cfg: UniqueSplatCfg) -> dict:
-    """A model config's fields but the importance head's and the ResNet18 file's: what must
-    match for a checkpoint to be this model with or without the head."""
+#: The fields a checkpoint may differ in from a model that starts from it with or without
+#: the importance head (``_load_adding_importance``); the ResNet18 file is the training
+#: machine's, its weights are in the checkpoint.
+BUDGET_FIELDS = ("importance", "importance_hidden", "resnet_weights")
+#: ... and with another view-specific branch (``_load_matching``).
+BRANCH_FIELDS = (*BUDGET_FIELDS, "specific_hidden", "view_features", "delta_rank",
+                 "delta_init_std", "resnet_stages", "feature_dim", "proj_samples",
+                 "proj_stride", "proj_temperature", "phi_channels", "specific_layers")
+
+
+def _config_without(cfg: UniqueSplatCfg, fields: tuple[str, ...]) -> dict:
+    """A model config's fields but ``fields``."""
     d = cfg.to_dict()
-    for key in ("importance", "importance_hidden", "resnet_weights"):
+    for key in fields:
         d.pop(key)
     return d
 
 
-#: The fields of the view-specific branch (and the budget's): a (c) whose other fields match
-#: a checkpoint's starts from it with another branch (``_load_other_branch``).
-BRANCH_FIELDS = ("specific_hidden", "view_features", "delta_rank", "delta_init_std",
-                 "resnet_stages",
-                 "resnet_weights", "feature_dim", "proj_samples", "proj_stride",
-                 "proj_temperature", "phi_channels", "specific_layers", "importance",
-                 "importance_hidden")
-
-
-def _without_branch(cfg: UniqueSplatCfg) -> dict:
-    """A model config's fields but the view-specific branch's and the budget's."""
-    d = cfg.to_dict()
-    for key in BRANCH_FIELDS:
-        d.pop(key)
-    return d
-
-
-def _load_other_branch(model, path: Path, sd: dict) -> None:
-    """A (c) from a (c) checkpoint whose view-specific branch is configured otherwise (a
-    design change of the branch, measured from a trained (c)): the primary network and H_a
-    exactly; of the branch, every weight whose name and shape match; the rest keep their
-    initialisation (logged)."""
+def _load_matching(model, path: Path, sd: dict) -> list[str]:
+    """``model`` from a checkpoint of its variant whose view-specific branch may be configured
+    otherwise (a design change of the branch, measured from a trained (c)): every weight whose
+    name and shape match, which is all of them outside the branch (the primary network, H_a);
+    the branch's others keep their initialisation (logged). Returns those."""
     own = model.state_dict()
     take = {k: v.float() for k, v in sd.items() if k in own and own[k].shape == v.shape}
     branch = ("view_embedding.", "specific.", "importance.")
-    missing = [k for k in own if k not in take]
-    if not all(k.startswith(branch) for k in missing):  # (_without_branch matched: a bug)
-        other = [k for k in missing if not k.startswith(branch)]
+    fresh = [k for k in own if k not in take]
+    if not all(k.startswith(branch) for k in fresh):  # (the configs matched: a bug)
+        other = [k for k in fresh if not k.startswith(branch)]
         raise RuntimeError(f"model.init_from: {path}: weights outside the view-specific "
                            f"branch do not match: {other}")
     model.load_state_dict(take, strict=False)
-    if missing:
+    if fresh:
         log.info("model.init_from: %s: %d view-specific weight(s) start afresh (another "
-                 "configuration of the branch): %s", path, len(missing), ", ".join(missing))
+                 "configuration of the branch): %s", path, len(fresh), ", ".join(fresh))
+    return fresh
 
 
 def _load_adding_importance(model, path: Path, cfg: UniqueSplatCfg, sd: dict) -> None:
