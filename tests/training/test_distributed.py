@@ -36,3 +36,29 @@ def test_without_a_store_the_failure_is_this_ranks(monkeypatch, tmp_path):
     monkeypatch.delenv("TORCHELASTIC_ERROR_FILE", raising=False)
     failure = rank_failure(KeyError("dataset"), rank=3, world=4, step=None)
     assert failure.own and str(failure) == "rank 3 of 4 failed: KeyError: 'dataset'"
+
+
+class _OnAnotherDevice:
+    """A stand-in for a CUDA generator state read back with map_location="cuda": torch's
+    setter accepts only the CPU ByteTensor that ``.cpu()`` gives."""
+
+    def __init__(self, state):
+        self.state = state
+
+    def cpu(self):
+        return self.state
+
+
+def test_a_cuda_rng_state_read_onto_the_gpu_is_restored_from_the_cpu(monkeypatch):
+    # --resume of a run on a GPU failed with "RNG state must be a torch.ByteTensor": the
+    # checkpoint, loaded onto the GPU, held the CUDA generators' states there.
+    import torch
+
+    byte_state = torch.zeros(16, dtype=torch.uint8)
+    state = {k: v for k, v in distributed.rng_state().items() if k != "cuda"}
+    state["cuda"] = [_OnAnotherDevice(byte_state)]
+    given = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "set_rng_state_all", given.extend)
+    distributed.set_rng_state(state)
+    assert len(given) == 1 and given[0] is byte_state

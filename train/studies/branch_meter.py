@@ -38,16 +38,16 @@ def checkpoint_path(name: str) -> str:
     return str(run) if run.is_file() else name
 
 
-def load_model(spec: str):
-    """The model a ``--checkpoints`` entry names (module docstring)."""
+def load_model(spec: str, device: str = "cpu"):
+    """The model a ``--checkpoints`` entry names (module docstring), on ``device``."""
     if spec.startswith("open:"):
         from usplat_dr.training.config import ModelSection, model_from_config
 
         _, name, std = spec.split(":")
         torch.manual_seed(0)  # as the trainer seeds before it builds the model (seed=0)
         return model_from_config(ModelSection(preset="tiny", variant="full", init_from=name,
-                                              open_gate_std=float(std))).eval()
-    return load(checkpoint_path(spec), "cpu")
+                                              open_gate_std=float(std))).eval().to(device)
+    return load(checkpoint_path(spec), device)
 
 
 def as_test_root(folder: Path, where: Path) -> Path:
@@ -68,24 +68,27 @@ def as_test_root(folder: Path, where: Path) -> Path:
     return stage.parent
 
 
-def read_set(model, root: Path, index: Path, scenes: int | None) -> list:
+def read_set(model, root: Path, index: Path, scenes: int | None, device: str = "cpu") -> list:
     ds = dataset_from_section({"name": "synth", "roots": [str(root)], "image_shape": [64, 64],
                                "evaluation_index": str(index)}, "test")
     readings = []
     for example in ds:
-        readings += read_batch(model, torch.utils.data.default_collate([example]))
+        readings += read_batch(model, torch.utils.data.default_collate([example]), device)
         if scenes is not None and len(readings) >= scenes:
             break
     return readings
 
 
-def embedding_spread(model, root: Path, index: Path, scenes: int | None) -> dict:
+def embedding_spread(model, root: Path, index: Path, scenes: int | None,
+                     device: str = "cpu") -> dict:
     """How much e_s and H_s's second hidden layer differ between a scene's targets ("within":
     RMS distance to the scene's mean) against between scenes (RMS distance of the scene means
     to their mean), and their mean norm: what Delta W can vary with at all."""
     kept = {}
-    hook = model.specific.hyper.net[3].register_forward_hook(
-        lambda mod, inp, out: kept.__setitem__("hidden", out.detach()))
+    hooks = [model.specific.hyper.net[3].register_forward_hook(
+                 lambda mod, inp, out: kept.__setitem__("hidden", out.detach())),
+             model.view_embedding.register_forward_hook(
+                 lambda mod, inp, out: kept.__setitem__("e_s", out[0].detach()))]
     values: dict[str, list] = {"e_s": [], "hidden": []}
     ds = dataset_from_section({"name": "synth", "roots": [str(root)], "image_shape": [64, 64],
                                "evaluation_index": str(index)}, "test")
@@ -93,14 +96,14 @@ def embedding_spread(model, root: Path, index: Path, scenes: int | None) -> dict
         for i, example in enumerate(ds):
             if scenes is not None and i == scenes:
                 break
-            a = model_inputs(torch.utils.data.default_collate([example]))
-            e_s, _ = model.view_embedding(a.images, a.extrinsics, a.intrinsics,
-                                          a.target_extrinsics, a.target_intrinsics,
-                                          a.target_near, a.target_far)
-            model.specific(e_s.flatten(0, 1))
-            values["e_s"].append(e_s[0])
+            a = model_inputs(torch.utils.data.default_collate([example]), device)
+            # the model's own path (E_H may read the encoder's features: near, far)
+            model.view_delta_w(a.images, a.extrinsics, a.intrinsics, a.target_extrinsics,
+                               a.target_intrinsics, a.target_near, a.target_far, a.near, a.far)
+            values["e_s"].append(kept["e_s"][0])
             values["hidden"].append(kept["hidden"])
-    hook.remove()
+    for hook in hooks:
+        hook.remove()
     return {name: within_between(torch.stack(xs)) for name, xs in values.items()}
 
 
@@ -153,6 +156,7 @@ def main(argv=None) -> int:
                    help="instead, chart these training runs' metrics.csv meter columns into "
                         "OUT (a PNG)")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--device", default="cpu", help="cpu, or cuda (Dr.Jit's CUDA backend too)")
     p.add_argument("--embedding", action="store_true",
                    help="also how much e_s and H_s's hidden layer vary within and between "
                         "scenes (models with the ResNet18 E_H)")
@@ -178,16 +182,17 @@ def main(argv=None) -> int:
         sets[name] = (Path(folder), index, int(count) if count else None)
     rows, summaries = [], {}
     for ckpt in args.checkpoints:
-        model = load_model(ckpt)
+        model = load_model(ckpt, args.device)
         for name, (folder, index, count) in sets.items():
-            readings = read_set(model, as_test_root(folder, out / "roots"), index, count)
+            readings = read_set(model, as_test_root(folder, out / "roots"), index, count,
+                                args.device)
             s = summarise(readings)
             summaries.setdefault(ckpt, {})[name] = s.as_dict()
             rows += [{"checkpoint": ckpt, "set": name, **r.row()} for r in readings]
             print(f"{ckpt} on {name}: {s.line()}", flush=True)
             if args.embedding:
                 spread = embedding_spread(model, as_test_root(folder, out / "roots"), index,
-                                          count)
+                                          count, args.device)
                 summaries[ckpt][name]["embedding"] = spread
                 print("  " + "; ".join(
                     f"{k}: within a scene {v['within']:.3g}, between scenes {v['between']:.3g},"

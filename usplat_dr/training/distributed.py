@@ -98,7 +98,9 @@ def set_rng_state(state: dict) -> None:
     np.random.set_state(npy)  # (a tuple in checkpoints written before the dict form)
     random.setstate(state["python"])
     if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        # a checkpoint read with map_location="cuda" holds them on the GPU; torch takes CPU
+        # ByteTensors only ("RNG state must be a torch.ByteTensor" on --resume otherwise)
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
 
 
 def gather(obj: object) -> list:

@@ -1,0 +1,78 @@
+#!/usr/bin/env bash
+# The live-branch arms at a scale one CPU core cannot reach: several training runs side by side
+# on one GPU for a fixed wall time each, then the view-specificity meter of every run's last
+# checkpoint on training and held-out scenes (train/studies/README.md, "A live view-specific
+# branch"). Data: sets packed here by carry_sets.py (Mitsuba need not be there).
+#
+#   python train/studies/carry_sets.py pack --out .gpudata \
+#       train=outputs/big/train480/train:150:jpeg heldout=outputs/big/test5000:30:png
+#
+# (The run of 2026-11-27 carried 200 training scenes packed with --jpeg-quality 90 --chroma 420.)
+#   bash train/studies/live_branch_gpu.sh OUT [SECONDS] [STEPS] [DEVICE]
+#
+# SECONDS (default 240): each run's wall-time limit (it stops at STEPS or at the limit; its last
+# checkpoint, written every 100 steps, is what the meter reads). DEVICE: cuda (default), or cpu
+# to try the script at a tiny size. Writes OUT/results.tar.gz (each run's log and metrics.csv,
+# the meter's meter.csv and meter.json) and each run's last weights as OUT/NAME.pt (float16,
+# as the shipped checkpoints are stored; about 7 MB each).
+set -uo pipefail
+OUT=${1:?OUT folder}; SECONDS_EACH=${2:-240}; STEPS=${3:-6000}; DEVICE=${4:-cuda}
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
+cd "$ROOT"
+PY=${PYTHON:-python3}
+WORK=${WORK:-/tmp/live_branch_gpu}
+mkdir -p "$OUT" "$WORK"
+$PY train/studies/carry_sets.py unpack .gpudata || exit 1
+BATCH=${BATCH:-16}
+common=(--config synthetic_tiny_depth.yaml 'dataset.roots=[.gpudata/train]' device=$DEVICE
+        threads=1 seed=0 train.progress=false train.steps=$STEPS train.checkpoint_every=100
+        train.validate_every=500 train.log_every=50 data_loader.batch_size=$BATCH
+        dataset.overrides.seed=0)
+branch=(model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3)
+declare -A arms=(
+  [branch_gate0]="${branch[*]} model.open_gate_std=0"
+  [branch_gate02_h128]="${branch[*]} model.open_gate_std=0.02 model.overrides.specific_hidden=128"
+  [branch_primary]="${branch[*]} model.open_gate_std=0.02 model.overrides.view_features=primary"
+  [joint]="model.variant=full model.init_from=tiny_baseline optimizer.lr=2e-4
+           optimizer.warm_up_fraction=0.05 optimizer.hyper_lr_scale=10
+           model.overrides.delta_init_std=0.01 model.overrides.delta_rank=16
+           data_loader.batch_size=$((BATCH / 2))"
+)
+# ARMS (default: all of them): the names of the arms to run, e.g. ARMS="branch_primary"
+if [ -n "${ARMS:-}" ]; then
+  for name in "${!arms[@]}"; do [[ " $ARMS " == *" $name "* ]] || unset "arms[$name]"; done
+fi
+start=$(date +%s)
+for name in "${!arms[@]}"; do
+  # shellcheck disable=SC2086  # the arm's overrides are words
+  timeout -s INT "$SECONDS_EACH" $PY -m usplat_dr train "${common[@]}" ${arms[$name]} \
+    output_dir="$WORK/$name" --resume >"$WORK/$name.log" 2>&1 &
+done
+wait
+echo "training: $(( $(date +%s) - start )) s"
+for name in "${!arms[@]}"; do
+  echo "== $name: $(grep -c '"step"' "$WORK/$name.log") log lines"
+  grep '"step"' "$WORK/$name.log" | tail -n 1 | cut -c1-300
+  grep -i "error\|Traceback" "$WORK/$name.log" | head -n 5
+done
+runs=()
+for name in "${!arms[@]}"; do
+  [ -f "$WORK/$name/checkpoints/last.ckpt" ] && runs+=("$WORK/$name")
+done
+$PY train/studies/branch_meter.py --device "$DEVICE" --checkpoints tiny_full "${runs[@]}" \
+  --sets train=.gpudata/train/train:30 heldout=.gpudata/heldout:30 --embedding \
+  --out "$WORK/meter" 2>&1 | grep -v "jit_find_library\|jitc_llvm_init"
+$PY - "$WORK" "$OUT" <<'EOF'
+import json, sys
+from pathlib import Path
+from usplat_dr.training.checkpoints import export_weights
+work, out = Path(sys.argv[1]), Path(sys.argv[2])
+for ckpt, sets in json.loads((work / "meter" / "meter.json").read_text()).items():
+    if ckpt != "tiny_full":  # every arm's weights come back (the machine's files do not)
+        path = export_weights(Path(ckpt) / "checkpoints" / "last.ckpt",
+                              out / f"{Path(ckpt).name}.pt")
+        print(f"{path}: live on held-out scenes: {sets['heldout']['live']}")
+EOF
+tar -czf "$OUT/results.tar.gz" -C "$WORK" --exclude='*.ckpt' --exclude=roots .
+echo "total: $(( $(date +%s) - start )) s"
+
