@@ -3,6 +3,7 @@ interpolated and linear Delta W against dense float64 references, and at zero st
 predictor renders (a); and its target offsets (--targets)."""
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import torch
 
 from tests.model.test_uniquesplat import scene
 from tests.train.test_oracle_delta import batch_of, oracle
+from usplat_dr.data.synth.render import GLOSSY, TEXTURED
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.hypernet.hypernetwork import LayerDelta
@@ -72,3 +74,29 @@ def test_at_zero_steps_every_predictor_renders_a():
         assert out[key] == pytest.approx([plain[1], plain[3]], abs=1e-3), key
     for key in ("in_sample_shared", "in_sample_per_target"):
         assert out[key] == pytest.approx(plain[0::2], abs=1e-3), key
+
+
+def test_shiny_pixels_are_scored_alone_and_a_frame_without_any_is_nan():
+    torch.manual_seed(0)
+    model = UniqueSplat.from_preset("tiny", variant="baseline").eval()
+    for p in model.parameters():
+        p.requires_grad_(False)
+    args = scene(n=5, seed=1)
+    gt = torch.rand(1, 5, 3, 64, 64, generator=torch.Generator().manual_seed(2))
+    batch = batch_of(args, gt)
+    batch["context"]["index"] = torch.tensor([[0, 6]])
+    material = torch.full((1, 5, 64, 64), float(TEXTURED))
+    material[0, 1, 10:30, 20:50] = GLOSSY  # scored frame at offset 2: a shiny patch
+    batch["target"]["material"] = material  # offset 4 (index 3): no shiny pixel
+    specs = tuple(model.conv_spec(n) for n in oracle.INJECTABLE_ALL)
+    out = transfer.fit_transfer(model, batch, specs, rank=2, steps=0, lr=1e-2, seed=0,
+                                pixels="shiny")
+    with torch.no_grad():
+        pred = model(*args).color[0, 1].clamp(0, 1)
+    # the PSNR of the patch alone, written from its definition in float64
+    mse = (pred[:, 10:30, 20:50].double() - gt[0, 1, :, 10:30, 20:50].double()).square().mean()
+    expected = -10 * math.log10(mse.item())
+    for key in ("a", "shared", "interpolated", "linear"):
+        # (a)'s renders up to the rank-r path's rounding (as above)
+        assert out[key][0] == pytest.approx(expected, abs=1e-3), key
+        assert math.isnan(out[key][1]), key

@@ -353,8 +353,10 @@ def between_frames_index(index: dict) -> dict:
     return out
 
 
-def fit_transfer(model, batch, specs, rank: int, steps: int, lr: float, seed: int) -> dict:
-    """The four predictors' PSNR per frame (module docstring); ``{column: [PSNR, ...]}``."""
+def fit_transfer(model, batch, specs, rank: int, steps: int, lr: float, seed: int,
+                 pixels: str = "all") -> dict:
+    """The four predictors' PSNR per frame (module docstring); ``{column: [PSNR, ...]}``, on
+    ``pixels`` (``--pixels``: the fits minimise whole-image error either way)."""
     import torch
 
     from usplat_dr.data.types import model_inputs
@@ -396,7 +398,7 @@ def fit_transfer(model, batch, specs, rank: int, steps: int, lr: float, seed: in
 
     def score(deltas, a, b):
         with torch.no_grad():
-            return score_targets(render(deltas, a), b, "all")
+            return score_targets(render(deltas, a), b, pixels)
 
     g = torch.Generator().manual_seed(seed)
     m_fit, m_score = len(fit_idx), len(score_idx)
@@ -468,8 +470,11 @@ def _with_parts(fit: DeltaFit, parts: dict) -> DeltaFit:
 
 
 def t_summary(values: list[float]) -> dict:
+    """Mean and 95% t interval over scenes; scenes whose value is NaN (no pixels of the
+    measured kind, ``--pixels``) are left out."""
     from usplat_dr.evaluation.verdict import t_interval
 
+    values = [v for v in values if not math.isnan(v)]
     lo, hi = t_interval(values)
     return {"mean": sum(values) / len(values), "low": lo, "high": hi,
             "scenes_higher": sum(v > 0 for v in values), "scenes": len(values)}
@@ -485,7 +490,7 @@ def run_between(args, p: argparse.ArgumentParser) -> int:
 
     from usplat_dr.data.dataset import dataset_from_section
     from usplat_dr.data.view_sampler import read_evaluation_index
-    from usplat_dr.evaluation import synthetic_indices
+    from usplat_dr.evaluation import nan_mean, synthetic_indices
     from usplat_dr.io import atomic_open, write_json
     from usplat_dr.training.checkpoints import training_image_shape
 
@@ -500,6 +505,8 @@ def run_between(args, p: argparse.ArgumentParser) -> int:
     out.mkdir(parents=True, exist_ok=True)
     settings = {k: getattr(args, k) for k in ("checkpoint", "data", "split", "steps", "rank",
                                               "lr", "seed")}
+    if args.pixels != "all":  # (absent for all pixels: earlier runs keep resuming)
+        settings["pixels"] = args.pixels
     rows = []
     if (out / "per_scene.csv").is_file():  # resume: the same settings only
         saved = out / "settings.json"  # (runs from before it was written: taken as theirs)
@@ -524,9 +531,8 @@ def run_between(args, p: argparse.ArgumentParser) -> int:
         if example["scene"] in done:
             continue
         fits = fit_transfer(model, default_collate([example]), specs, args.rank, args.steps,
-                            args.lr, args.seed + s)
-        rows.append({"scene": example["scene"],
-                     **{k: sum(v) / len(v) for k, v in fits.items()}})
+                            args.lr, args.seed + s, args.pixels)
+        rows.append({"scene": example["scene"], **{k: nan_mean(v) for k, v in fits.items()}})
         with atomic_open(out / "per_scene.csv", "w") as fo:
             w = csv.DictWriter(fo, fieldnames=["scene", *BETWEEN_COLUMNS])
             w.writeheader()
@@ -537,7 +543,7 @@ def run_between(args, p: argparse.ArgumentParser) -> int:
               + f" dB ({time.perf_counter() - t0:.0f} s)", flush=True)
     summary = {
         "settings": vars(args), "scenes": len(rows),
-        **{f"psnr_{k}": sum(r[k] for r in rows) / len(rows) for k in BETWEEN_COLUMNS},
+        **{f"psnr_{k}": nan_mean([r[k] for r in rows]) for k in BETWEEN_COLUMNS},
         "interpolated_minus_shared": t_summary([r["interpolated"] - r["shared"] for r in rows]),
         "linear_minus_shared": t_summary([r["linear"] - r["shared"] for r in rows]),
         "in_sample_per_target_minus_shared": t_summary(

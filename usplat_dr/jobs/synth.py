@@ -31,9 +31,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="diffuse: mostly matte surfaces, direct lighting under a constant sky; "
                    "view-dependent: the same geometry with at least half of the surfaces "
                    "glossy or metallic (floors always), a structured sky and path tracing, "
-                   "so that appearance changes with the viewpoint")
+                   "so that appearance changes with the viewpoint (near-mirror surfaces); "
+                   "rough-glossy: the same surfaces rough (GGX 0.15-0.4): broad highlights "
+                   "that move smoothly with the viewpoint")
     p.add_argument("--spp", type=positive_int, default=None,
-                   help="Mitsuba samples per pixel (default: 64 diffuse, 256 view-dependent: "
+                   help="Mitsuba samples per pixel (default: 64 diffuse, 256 view-dependent "
+                   "and rough-glossy: "
                    "path tracing's noise on shiny surfaces needs it)")
     p.add_argument("--backend", default="llvm", choices=["llvm", "cuda"],
                    help="Mitsuba variant: llvm_ad_rgb (CPU) or cuda_ad_rgb")

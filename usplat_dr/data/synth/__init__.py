@@ -45,7 +45,7 @@ __all__ = ["APPEARANCES", "DEFAULT_SEEDS", "KINDS", "SPLITS", "check_stages_disj
 
 
 #: Samples per pixel by appearance (``synthesize``'s default).
-DEFAULT_SPP = {"diffuse": 64, "view-dependent": 256}
+DEFAULT_SPP = {"diffuse": 64, "view-dependent": 256, "rough-glossy": 256}
 
 #: The seed of each stage when none is given: different, so that a train and a test set made
 #: without ``--seed`` share no scene (test keeps 0, the seed its default always had).
@@ -81,8 +81,9 @@ def metadata_folder(out: str | os.PathLike, stage: str) -> Path:
 
 def scene_key(kind: str, seed: int, i: int, appearance: str = "diffuse") -> str:
     """The key of scene ``i`` of a set made with ``seed``: ``<kind>_<seed>_<i:05d>`` (``_vd``
-    for the view-dependent appearance)."""
-    return f"{kind}_{seed}_{i:05d}" + ("_vd" if appearance == "view-dependent" else "")
+    for the view-dependent appearance, ``_rg`` for the rough-glossy one)."""
+    return f"{kind}_{seed}_{i:05d}" + {"view-dependent": "_vd", "rough-glossy": "_rg"}.get(
+        appearance, "")
 
 
 def check_stages_disjoint(out: str | os.PathLike, stage: str, keys: list[str]) -> None:
@@ -174,9 +175,10 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     processes, for machines where one Mitsuba process does not keep every core busy).
     Chunks hold up to 100 MB of scenes, and at most ``chunk_scenes`` scenes when given
     (training shards by scene, so any number of chunks feeds any number of ranks).
-    ``appearance``: ``"diffuse"`` or ``"view-dependent"`` (shiny surfaces, a structured sky,
-    path tracing: ``usplat_dr.data.synth.scenes``); the same seed gives the same geometry and
-    cameras in both. ``spp``: Mitsuba samples per pixel (None: ``DEFAULT_SPP`` of the
+    ``appearance``: ``"diffuse"``, ``"view-dependent"`` (shiny surfaces, a structured sky,
+    path tracing: ``usplat_dr.data.synth.scenes``) or ``"rough-glossy"`` (the same with rough
+    shiny surfaces: broad highlights); the same seed gives the same geometry and cameras in
+    all three. ``spp``: Mitsuba samples per pixel (None: ``DEFAULT_SPP`` of the
     appearance: path tracing's noise on shiny surfaces needs 256 to stay below what changes
     with the viewpoint; train/studies/README.md, "The view-dependent appearance, version
     2"). ``seed``: None takes the stage's own (``DEFAULT_SEEDS``); a given seed makes the

@@ -24,7 +24,12 @@ geometry and cameras (the same seed), with at least half of the surfaces glossy 
 (floors, terrain and turntables always), a structured environment map instead of the constant
 sky, and Mitsuba's ``path`` integrator (``max_depth`` 3), so that shiny surfaces reflect the
 scene and the sky. Its description has ``"appearance"``, ``"integrator"`` and an ``envmap``
-light; tags gain ``view_dependent``.
+light; tags gain ``view_dependent``. ``"rough-glossy"``: the view-dependent appearance with the
+same surfaces, sky and lamps (the same random stream) but rough shiny materials (GGX roughness
+0.15-0.4, ``ROUGH_ROUGHNESS``): broad highlights of the sky's panels, sun and lamps (to such a
+surface a few large lights) that move smoothly with the viewpoint, which colour of spherical
+harmonics degree 2 can hold and two context views both see; tags gain ``view_dependent`` and
+``rough``.
 """
 
 import math
@@ -36,7 +41,7 @@ from usplat_dr.data.synth.textures import random_texture_spec
 from usplat_dr.geometry.cameras import look_at
 
 KINDS = ("indoor", "outdoor", "object")
-APPEARANCES = ("diffuse", "view-dependent")
+APPEARANCES = ("diffuse", "view-dependent", "rough-glossy")
 SPEC_VERSION = 1
 #: Shapes that are always shiny in the view-dependent appearance (the ground of each kind).
 GROUND = ("floor", "terrain", "turntable")
@@ -366,11 +371,16 @@ LAMP_SCALE = 3.0
 #: its first version (roughness 0.03-0.15 on a full-albedo base under a 32x64 sky, which failed
 #: its acceptance). Stored descriptions re-render as they were made.
 VD_VERSION = 2
+#: The rough-glossy appearance's GGX roughness: a highlight spans tens of degrees (broad view
+#: dependence, unlike the near-mirror reflections that the view-dependent appearance's
+#: version 2 made and that a feed-forward model did not learn from two views).
+ROUGH_ROUGHNESS = (0.15, 0.4)
 
 
-def _shiny(rng: np.random.Generator, material: dict, metal: bool) -> dict:
+def _shiny(rng: np.random.Generator, material: dict, metal: bool,
+           roughness_range: tuple[float, float] = SHINY_ROUGHNESS) -> dict:
     """A glossy (clear-coated, keeping a texture) or metallic version of ``material``."""
-    roughness = round(float(rng.uniform(*SHINY_ROUGHNESS)), 3)
+    roughness = round(float(rng.uniform(*roughness_range)), 3)
     if metal:
         tint = (0.55 + 0.4 * rng.random(3)).round(3).tolist()
         return {"type": "conductor", "rgb": tint, "roughness": roughness}
@@ -391,9 +401,11 @@ def environment_spec(rng: np.random.Generator, strength: float) -> dict:
             "scale": round(float(strength), 3)}
 
 
-def view_dependent(spec: dict, rng: np.random.Generator) -> dict:
-    """The view-dependent appearance of a description (module docstring): shapes and
-    cameras unchanged, materials, sky and integrator replaced."""
+def view_dependent(spec: dict, rng: np.random.Generator, appearance: str = "view-dependent"
+                   ) -> dict:
+    """The view-dependent (or rough-glossy) appearance of a description (module docstring):
+    shapes and cameras unchanged, materials, sky and integrator replaced."""
+    rough = appearance == "rough-glossy"
     shapes = [dict(s) for s in spec["shapes"]]
     n = len(shapes)
     ground = [i for i, s in enumerate(shapes) if s["name"] in GROUND]
@@ -404,7 +416,8 @@ def view_dependent(spec: dict, rng: np.random.Generator) -> dict:
     chosen = set(ground) | set(others[:need]) | {i for i in others[need:] if rng.random() < 0.7}
     for i in sorted(chosen):
         metal = shapes[i]["name"] not in GROUND and rng.random() < METAL_CHANCE
-        shapes[i]["material"] = _shiny(rng, shapes[i]["material"], metal)
+        shapes[i]["material"] = _shiny(rng, shapes[i]["material"], metal,
+                                       ROUGH_ROUGHNESS if rough else SHINY_ROUGHNESS)
     lights = []
     for light in spec["lights"]:
         if light["type"] == "constant":  # the constant sky becomes a structured one
@@ -419,9 +432,9 @@ def view_dependent(spec: dict, rng: np.random.Generator) -> dict:
         else:
             lights.append(light)
     return {**spec, "version": VD_VERSION, "shapes": shapes, "lights": lights,
-            "appearance": "view-dependent",
+            "appearance": appearance,
             "integrator": {"type": "path", "max_depth": VD_MAX_DEPTH},
-            "tags": [*spec["tags"], "view_dependent"]}
+            "tags": [*spec["tags"], "view_dependent", *(["rough"] if rough else [])]}
 
 
 def make_spec(kind: str, seed: int, frames: int, appearance: str = "diffuse") -> dict:
@@ -449,6 +462,8 @@ def make_spec(kind: str, seed: int, frames: int, appearance: str = "diffuse") ->
             "cameras": {"c2w": [np.round(c, 7).tolist() for c in s["cameras"]],
                         "fov_x_deg": round(s["fov_x_deg"], 4)},
             "near_far": s["near_far"], "tags": s["tags"]}
-    if appearance == "view-dependent":  # its own random stream: the geometry stays the same
-        spec = view_dependent(spec, np.random.default_rng([seed, KINDS.index(kind), 1]))
+    if appearance != "diffuse":  # its own random stream: the geometry stays the same (and
+        # both shiny appearances make the same surfaces shiny, under the same sky)
+        spec = view_dependent(spec, np.random.default_rng([seed, KINDS.index(kind), 1]),
+                              appearance)
     return spec
