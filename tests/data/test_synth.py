@@ -185,6 +185,28 @@ def test_view_dependent_appearance_keeps_geometry(kind):
         make_spec(kind, 11, 6, "shiny")
 
 
+@pytest.mark.parametrize("kind", ["indoor", "outdoor", "object"])
+def test_rough_glossy_is_the_view_dependent_appearance_with_rough_surfaces(kind):
+    from usplat_dr.data.synth import scene_key
+    from usplat_dr.data.synth.scenes import ROUGH_ROUGHNESS, make_spec
+
+    mirror, rough = make_spec(kind, 11, 6, "view-dependent"), make_spec(kind, 11, 6,
+                                                                         "rough-glossy")
+    # the same geometry, cameras, lights and integrator; the same surfaces shiny and metal
+    for key in ("cameras", "near_far", "lights", "integrator"):
+        assert rough[key] == mirror[key], key
+    assert [(s["name"], s["to_world"], s["material"]["type"]) for s in rough["shapes"]] == [
+        (s["name"], s["to_world"], s["material"]["type"]) for s in mirror["shapes"]]
+    shiny = [s["material"] for s in rough["shapes"]
+             if s["material"]["type"] in ("glossy", "conductor")]
+    assert shiny and all(ROUGH_ROUGHNESS[0] <= m["roughness"] <= ROUGH_ROUGHNESS[1]
+                         for m in shiny)
+    assert min(ROUGH_ROUGHNESS) >= 0.15 and max(ROUGH_ROUGHNESS) <= 0.4  # broad highlights
+    assert rough["appearance"] == "rough-glossy"
+    assert {"view_dependent", "rough"} <= set(rough["tags"]) and "rough" not in mirror["tags"]
+    assert scene_key(kind, 11, 0, "rough-glossy").endswith("_rg")  # its own scenes
+
+
 def test_view_dependent_set_is_deterministic_with_the_same_depths(synth_set, tmp_path):
     # As users run it: two `usplat synth` processes, one and two workers. Path tracing's
     # bytes depend on Dr.Jit's vector width (the portable pin, on in every `usplat` command,
