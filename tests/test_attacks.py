@@ -453,6 +453,151 @@ def test_duplicate_keys_are_read_once(tmp_path, caplog):
     assert len(examples) == 1
 
 
+# ---- own data: the importers' and render --images' doors ------------------------------------
+
+READS = "reads outside what the user named"
+
+
+def own_colmap(folder: Path, image: bytes | None = None, name: str = "a.png",
+               size: tuple[int, int] = (64, 48)) -> Path:
+    """A one-camera COLMAP text model (``tests.data.test_importers``'s) of two images, the
+    first named ``name`` and holding ``image`` (a valid PNG when None), the second a valid
+    ``b.png``, calibrated at ``size`` (W, H)."""
+    from tests.data.test_importers import write_one_camera_colmap
+
+    write_one_camera_colmap(folder)
+    w, h = size
+    (folder / "cameras.txt").write_text(f"1 PINHOLE {w} {h} 50 50 {w / 2} {h / 2}\n")
+    (folder / "images.txt").write_text(f"1 1 0 0 0 0 0 5 1 {name}\n\n"
+                                       f"2 1 0 0 0 1 0 5 1 b.png\n\n")
+    Image.new("RGB", (w, h)).save(folder / "images" / "b.png")
+    if image is not None:
+        (folder / "images" / "a.png").write_bytes(image)
+    return folder
+
+
+def run_import(args: list[str], out: Path, capsys, monkeypatch) -> str:
+    """``usplat import ARGS --out OUT``: exit 2 with one line naming the problem, no program
+    started, within ``HANG_S``; returns the line."""
+    from usplat_dr.cli import main
+
+    def refuse(*a, **k):
+        raise AssertionError(f"a program was started on data: {a}")
+
+    monkeypatch.setattr(subprocess, "Popen", refuse)
+    with deadline(HANG_S):
+        code = main(["-q", "import", *args, "--out", str(out), "--near", "1", "--far", "9"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("usplat import: error: "), (code, err)
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def test_imported_images_are_png_or_jpeg_of_bounded_size(tmp_path, capsys, monkeypatch):
+    eps = (b"%!PS-Adobe-3.0 EPSF-3.0\n%%BoundingBox: 0 0 64 48\n"
+           b"(%pipe%touch /tmp/usplat_pwned) (w) file\nshowpage\n%%EOF\n")
+    cases = {"EPS named .png": eps, "text": b"these are not image bytes\n" * 10,
+             "a 20000x20000 header": png_claiming(20000, 20000).numpy().tobytes(),
+             "GIF": encoded("GIF").numpy().tobytes(), "empty": b""}
+    for i, (kind, data) in enumerate(cases.items()):
+        folder = own_colmap(tmp_path / f"m{i}", data)
+        err = run_import(["--colmap", str(folder)], tmp_path / f"out{i}", capsys, monkeypatch)
+        assert "cannot be decoded" in err or "claims" in err, (kind, err)
+        assert not (tmp_path / f"out{i}" / "test").exists() or not list(
+            (tmp_path / f"out{i}" / "test").glob("*.torch")), kind
+        COUNTS[(DECODING, "error naming the file")] += 1
+    assert not Path("/tmp/usplat_pwned").exists()
+
+
+def test_imported_file_names_stay_inside_their_folder(tmp_path, capsys, monkeypatch):
+    secret = tmp_path / "secret.png"
+    Image.new("RGB", (64, 48), (255, 0, 0)).save(secret)
+    hostile = ["../../secret.png", "../../../secret.png", str(secret), "images/../../../secret.png"]
+    for i, name in enumerate(hostile):
+        folder = own_colmap(tmp_path / f"c{i}" / "m", name=name)
+        err = run_import(["--colmap", str(folder)], tmp_path / f"cout{i}", capsys, monkeypatch)
+        assert "leaves" in err or "absolute" in err, (name, err)
+        COUNTS[(READS, "error naming the file")] += 1
+        folder = tmp_path / f"n{i}" / "scene"
+        folder.mkdir(parents=True)
+        (folder / "transforms.json").write_text(json.dumps({
+            "fl_x": 50, "w": 64, "h": 48,
+            "frames": [{"file_path": name, "transform_matrix": np.eye(4).tolist()}]}))
+        err = run_import(["--nerfstudio", str(folder)], tmp_path / f"nout{i}", capsys,
+                         monkeypatch)
+        assert "leaves" in err or "absolute" in err, (name, err)
+        COUNTS[(READS, "error naming the file")] += 1
+
+
+def test_counts_and_sizes_in_camera_files_are_bounded(tmp_path, capsys, monkeypatch):
+    import struct
+
+    from usplat_dr.data.importers import MAX_JSON_BYTES
+    from usplat_dr.io.user_files import MAX_DATA_BYTES
+
+    def binary_model(folder: Path, cameras: bytes, images: bytes) -> Path:
+        own_colmap(folder)
+        for f in ("cameras.txt", "images.txt"):
+            (folder / f).unlink()
+        (folder / "cameras.bin").write_bytes(cameras)
+        (folder / "images.bin").write_bytes(images)
+        return folder
+
+    one_camera = struct.pack("<QiiQQ4d", 1, 1, 1, 64, 48, 50, 50, 32, 24)
+    image = struct.pack("<Qidddddddi", 1, 1, 1, 0, 0, 0, 0, 0, 5, 1) + b"a.png\0"
+    # (one image: every case fails before the importer counts them)
+    cases = {
+        "2^62 2D points": (one_camera, image + struct.pack("<Q", 2**62)),
+        "2^64 - 1 cameras": (struct.pack("<Q", 2**64 - 1), image + struct.pack("<Q", 0)),
+        "2^64 - 1 images": (one_camera, struct.pack("<Q", 2**64 - 1)),
+        "a name without its end": (one_camera, image[:-1]),
+        "a name of bytes": (one_camera, image[:-6] + b"\xff\xfe\0" + struct.pack("<Q", 0)),
+    }
+    for i, (kind, (cams, imgs)) in enumerate(cases.items()):
+        folder = binary_model(tmp_path / f"b{i}", cams, imgs)
+        err = run_import(["--colmap", str(folder)], tmp_path / f"bout{i}", capsys, monkeypatch)
+        assert "ends early" in err or "UTF-8" in err or "NUL" in err, (kind, err)
+        COUNTS[(BOUNDS, "error naming the file")] += 1
+    # sparse files past the bounds: refused from their size, before a byte is read
+    folder = binary_model(tmp_path / "sparse", one_camera, image + struct.pack("<Q", 0))
+    with open(folder / "cameras.bin", "r+b") as f:
+        f.truncate(MAX_DATA_BYTES + 1)
+    err = run_import(["--colmap", str(folder)], tmp_path / "sout", capsys, monkeypatch)
+    assert "bytes, more than" in err, err
+    COUNTS[(BOUNDS, "error naming the file")] += 1
+    folder = tmp_path / "json"
+    folder.mkdir()
+    with open(folder / "transforms.json", "wb") as f:
+        f.truncate(MAX_JSON_BYTES + 1)
+    err = run_import(["--nerfstudio", str(folder)], tmp_path / "jout", capsys, monkeypatch)
+    assert "bytes, more than" in err, err
+    (folder / "transforms.json").write_text("[" * 100_000 + "]" * 100_000)
+    err = run_import(["--nerfstudio", str(folder)], tmp_path / "jout2", capsys, monkeypatch)
+    assert "too deeply" in err or "no 'frames'" in err, err
+    COUNTS[(BOUNDS, "error naming the file")] += 2
+
+
+def test_render_images_decodes_through_the_same_door(tmp_path, monkeypatch):
+    from usplat_dr.data.user_views import context_views, read_cameras
+
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: pytest.fail(f"program: {a}"))
+    eps = b"%!PS-Adobe-3.0 EPSF-3.0\n%%BoundingBox: 0 0 64 48\nshowpage\n%%EOF\n"
+    folder = own_colmap(tmp_path / "eps", eps)
+    images = [folder / "images" / "a.png", folder / "images" / "b.png"]
+    with deadline(HANG_S), pytest.raises(ValueError, match="cannot be decoded"):
+        context_views(images, read_cameras(folder), (64, 64))
+    COUNTS[(DECODING, "error naming the file")] += 1
+    # a valid 1 x 4,000,000 PNG (a few KB): covering 64x64 would ask for 64 x 256M pixels
+    buf = io.BytesIO()
+    Image.new("RGB", (4_000_000, 1)).save(buf, format="PNG")
+    folder = own_colmap(tmp_path / "long", buf.getvalue(), size=(4_000_000, 1))
+    Image.new("RGB", (4_000_000, 1)).save(folder / "images" / "b.png")
+    images = [folder / "images" / "a.png", folder / "images" / "b.png"]
+    with deadline(HANG_S), pytest.raises(ValueError, match="resized"):
+        context_views(images, read_cameras(folder), (64, 64))
+    COUNTS[(BOUNDS, "error naming the file")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

@@ -128,6 +128,24 @@ def test_function_local_imports_give_a_reason():
     assert not silent, "function-local imports without a reason: " + ", ".join(silent)
 
 
+def test_images_are_decoded_through_one_door():
+    """Every image the library or a plugin decodes goes through ``usplat_dr.io.user_files``
+    (PNG or JPEG only, its size checked before decoding): a direct ``Image.open``,
+    ``imageio`` read or ``Image.frombytes``-style decoder elsewhere would let any format Pillow
+    knows (EPS: Ghostscript) or any claimed size through."""
+    door = MODULES["usplat_dr.io.user_files"]
+    others = []
+    for path in MODULES.values():
+        if path == door:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute) and node.attr in ("open", "imread", "v3") \
+                    and isinstance(node.value, ast.Name) \
+                    and node.value.id in ("Image", "imageio", "iio", "skimage"):
+                others.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not others, "images decoded outside usplat_dr.io.user_files: " + ", ".join(others)
+
+
 def test_top_level_holds_only_plumbing():
     top = sorted(p.stem for p in PACKAGE.glob("*.py"))
     assert len(top) <= 8, top

@@ -204,7 +204,7 @@ def test_cli_commands_are_a_table_of_job_modules():
     "usplat_dr.model.hypernet.resnet", "usplat_dr.jobs.report", "usplat_dr.jobs.arguments",
     "usplat_dr.data.types", "usplat_dr.config", "usplat_dr.training.distributed",
     "usplat_dr.training.checkpoints", "usplat_dr.training.cores", "usplat_dr.model.budget",
-    "usplat_dr.evaluation.view_specificity"])
+    "usplat_dr.evaluation.view_specificity", "usplat_dr.io.user_files"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module))
     assert result.attempted > 0 and result.failed == 0

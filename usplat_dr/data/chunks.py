@@ -33,6 +33,9 @@ from torch import Tensor
 
 from usplat_dr.io import torch_save, write_json
 from usplat_dr.io.checkpoint_files import check_torch_archive
+from usplat_dr.io.user_files import IMAGE_FORMATS, MAX_IMAGE_PIXELS, open_image, rgb8
+
+__all__ = ["IMAGE_FORMATS", "MAX_IMAGE_PIXELS"]  # (re-exported: the data layer's readers)
 
 log = logging.getLogger(__name__)
 
@@ -135,50 +138,21 @@ def encode_image(image: UInt8[np.ndarray, "h w 3"], fmt: str = "png",
     return torch.frombuffer(bytearray(buf.getvalue()), dtype=torch.uint8)
 
 
-#: Larger images are refused before decoding (a corrupt header can claim any size; 64 Mpx is
-#: far beyond the field's data: RE10K 360x640, DTU 512x640).
-MAX_IMAGE_PIXELS = 8192 * 8192
-
-
-#: The formats frames are decoded as: the field's (pixelSplat's chunks hold JPEG; ours PNG).
-#: Pillow would otherwise try every format it knows, EPS among them, which runs Ghostscript.
-IMAGE_FORMATS = ("PNG", "JPEG")
-
-
 def decode_image(data: object) -> UInt8[Tensor, "3 h w"]:
     """Decode one encoded image (uint8 1-D tensor of PNG or JPEG bytes) to uint8 [3, H, W]
-    RGB; 16-bit PNGs are scaled to 8 bits (x 255 / 65535, rounded).
+    RGB; 16-bit PNGs are scaled to 8 bits (x 255 / 65535, rounded). Through the one image
+    door, ``usplat_dr.io.user_files``.
 
     Raises ``BadSceneError`` when the bytes are not a readable PNG or JPEG (or claim more
     than ``MAX_IMAGE_PIXELS`` pixels)."""
     if not is_plain(data) or data.dtype != torch.uint8 or data.ndim != 1:
         raise BadSceneError("an image is not a uint8 1-D tensor of encoded bytes")
-    # Pillow's format plugins raise many kinds of errors on damaged bytes (OSError,
-    # SyntaxError, struct.error, DecompressionBombError, ...): each means "not decodable"
     try:
-        im = Image.open(io.BytesIO(data.numpy().tobytes()), formats=IMAGE_FORMATS)
-    except Exception as e:
-        raise BadSceneError(f"an image cannot be decoded ({type(e).__name__}: {e})") from e
-    with im:
-        w, h = im.size
-        if w * h > MAX_IMAGE_PIXELS:
-            raise BadSceneError(f"an image claims {w}x{h} pixels (more than "
-                                f"{MAX_IMAGE_PIXELS:,}): a corrupt header")
-        try:
-            arr = _to_rgb8(im)
-        except Exception as e:
-            raise BadSceneError(f"an image cannot be decoded ({type(e).__name__}: {e})"
-                                ) from e
+        with open_image(data.numpy().tobytes(), "an image") as im:
+            arr = rgb8(im)
+    except ValueError as e:
+        raise BadSceneError(str(e)) from None
     return torch.from_numpy(arr.copy()).permute(2, 0, 1)
-
-
-def _to_rgb8(im: Image.Image) -> np.ndarray:
-    """[H, W, 3] uint8 of a decoded image. Pillow's ``convert("RGB")`` clips 16-bit grey
-    ("I;16", or "I" from older Pillow) at 255 instead of scaling it."""
-    if im.mode.startswith("I;16") or im.mode == "I":
-        grey = np.clip(np.asarray(im).astype(np.float64), 0, 65535) * (255.0 / 65535.0)
-        return np.repeat(np.rint(grey).astype(np.uint8)[..., None], 3, axis=-1)
-    return np.asarray(im.convert("RGB"))
 
 
 def is_plain(t: object) -> bool:

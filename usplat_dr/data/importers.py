@@ -41,6 +41,7 @@ from PIL import Image
 
 from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras
 from usplat_dr.io import write_json
+from usplat_dr.io.user_files import check_resize, inside, read_bytes, read_image
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +116,10 @@ def colmap_pinhole(cam: ColmapCamera, where: str, ignore_distortion: bool = Fals
 def _text_lines(path: Path) -> list[str]:
     """The lines of a COLMAP text file (comments and blank lines kept: images.txt pairs
     lines, and an image with no 2D points has an empty second line)."""
-    return path.read_text(encoding="utf-8").splitlines()
+    try:
+        return read_bytes(path, "COLMAP file").decode("utf-8").splitlines()
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path} is not UTF-8 text ({e}): not a COLMAP text file") from None
 
 
 def read_colmap_cameras_text(path: Path) -> dict[int, ColmapCamera]:
@@ -169,7 +173,7 @@ class _Reader:
     it ends early."""
 
     def __init__(self, path: Path):
-        self.path, self.data, self.pos = path, path.read_bytes(), 0
+        self.path, self.data, self.pos = path, read_bytes(path, "COLMAP file"), 0
 
     def read(self, fmt: str) -> tuple:
         size = struct.calcsize("<" + fmt)
@@ -181,15 +185,21 @@ class _Reader:
         return out
 
     def skip(self, nbytes: int) -> None:
-        if self.pos + nbytes > len(self.data):
-            self.read(f"{nbytes}x")
+        if self.pos + nbytes > len(self.data):  # (a count read from the file may claim 2^64)
+            raise ValueError(f"{self.path}: ends early at byte {self.pos} (a record claims "
+                             f"{nbytes:,} more bytes; a truncated or damaged file: export the "
+                             "model again with colmap model_converter)")
         self.pos += nbytes
 
     def name(self) -> str:
         end = self.data.find(b"\0", self.pos)
         if end < 0:
             raise ValueError(f"{self.path}: an image name has no terminating NUL (truncated)")
-        out = self.data[self.pos:end].decode("utf-8")
+        try:
+            out = self.data[self.pos:end].decode("utf-8")
+        except UnicodeDecodeError:
+            raise ValueError(f"{self.path}: an image name at byte {self.pos} is not UTF-8 (a "
+                             "damaged file)") from None
         self.pos = end + 1
         return out
 
@@ -301,7 +311,7 @@ def read_colmap(folder: str | os.PathLike, images: str | os.PathLike | None = No
         c2w.append(np.linalg.inv(w2c))
         intr.append(normalised_intrinsics(fx, fy, cx, cy, cam.width, cam.height))
         shapes.append((cam.height, cam.width))
-        paths.append(image_dir / name)
+        paths.append(inside(image_dir, name, f"{images_file}: image name"))
     return ImportedScene(paths, np.stack(c2w), np.stack(intr), np.array(shapes), points, model)
 
 
@@ -339,6 +349,8 @@ def normalised_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 NERFSTUDIO_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+#: Bytes a transforms.json may hold (10,000 frames with per-frame intrinsics are about 10 MB).
+MAX_JSON_BYTES = 256 * 2**20
 
 
 def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False
@@ -353,9 +365,11 @@ def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False
         raise FileNotFoundError(f"{path} does not exist: point --nerfstudio at the folder "
                                 "holding transforms.json (ns-process-data's output)")
     try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
+        meta = json.loads(read_bytes(path, "transforms.json", MAX_JSON_BYTES).decode("utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path} is not valid JSON ({e})") from None
+    except RecursionError:
+        raise ValueError(f"{path} nests its JSON too deeply: not a transforms.json") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) \
             or not meta["frames"]:
         raise ValueError(f"{path} has no 'frames' list: not a nerfstudio transforms.json")
@@ -399,7 +413,7 @@ def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False
         intr.append(normalised_intrinsics(fx, fy, float(get("cx", w / 2)),
                                           float(get("cy", h / 2)), w, h))
         shapes.append((h, w))
-        paths.append(folder / frame["file_path"])
+        paths.append(inside(folder, frame["file_path"], f"{where}: file_path"))
     return ImportedScene(paths, np.stack(c2w), np.stack(intr), np.array(shapes), None, folder)
 
 
@@ -476,18 +490,20 @@ def load_image(path: Path, calibrated: tuple[int, int], resolution: tuple[int, i
     if not path.is_file():
         raise FileNotFoundError(f"image {path} does not exist (named by the model): pass "
                                 "--images DIR (COLMAP) or fix file_path (nerfstudio)")
-    with Image.open(path) as im:
-        w, h = im.size
-        ch, cw = calibrated
-        # 1% covers sizes rounded when images were downscaled by 2, 4 or 8
-        if abs(w / h - cw / ch) > 0.01 * cw / ch:
-            raise ValueError(f"image {path} is {w}x{h}, but its camera was calibrated at "
-                             f"{cw}x{ch} (another aspect ratio): use the images the model "
-                             "was solved on")
-        im = im.convert("RGB")
-        if resolution is not None and (h, w) != tuple(resolution):
-            im = im.resize((resolution[1], resolution[0]), Image.Resampling.LANCZOS)
+    image = read_image(path)
+    h, w = image.shape[:2]
+    ch, cw = calibrated
+    # 1% covers sizes rounded when images were downscaled by 2, 4 or 8
+    if abs(w / h - cw / ch) > 0.01 * cw / ch:
+        raise ValueError(f"image {path} is {w}x{h}, but its camera was calibrated at "
+                         f"{cw}x{ch} (another aspect ratio): use the images the model "
+                         "was solved on")
+    if resolution is not None and (h, w) != tuple(resolution):
+        check_resize((h, w), tuple(resolution), f"image {path}")
+        im = Image.fromarray(image).resize((resolution[1], resolution[0]),
+                                           Image.Resampling.LANCZOS)
         return np.asarray(im)
+    return image
 
 
 def scene_key(source: Path) -> str:
