@@ -598,6 +598,24 @@ def test_render_images_decodes_through_the_same_door(tmp_path, monkeypatch):
     COUNTS[(BOUNDS, "error naming the file")] += 1
 
 
+def test_ply_files_are_regular_and_bounded(tmp_path):
+    from usplat_dr.model.ply import read_ply
+
+    fifo = tmp_path / "fifo.ply"
+    os.mkfifo(fifo)
+    huge = tmp_path / "huge.ply"
+    props = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+             "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    huge.write_bytes(("ply\nformat binary_little_endian 1.0\nelement vertex 1000000000000\n"
+                      + "".join(f"property float {p}\n" for p in props)
+                      + "end_header\n").encode() + b"\0" * 64)
+    for path, needle in ((fifo, "not a regular file"), (Path("/dev/zero"), "not a regular file"),
+                         (tmp_path, "not a regular file"), (huge, "truncated")):
+        with deadline(HANG_S), pytest.raises(ValueError, match=needle):
+            read_ply(path)
+        COUNTS[(BOUNDS, "error naming the file")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

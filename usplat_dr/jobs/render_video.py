@@ -34,6 +34,7 @@ from usplat_dr.jobs.arguments import (
     positive_int,
 )
 from usplat_dr.model.ply import write_ply
+from usplat_dr.model.predict import Prediction
 from usplat_dr.training.checkpoints import load, training_image_shape
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
@@ -176,15 +177,33 @@ def targets(path: str, context_extrinsics: torch.Tensor, context_intrinsics: tor
     return target_cameras(read_cameras(path), image_shape)
 
 
-def predict_own_views(model, args: argparse.Namespace):
-    """``--images`` and ``--cameras``: the model's ``Prediction`` for ``--path``."""
+#: Target cameras a ``--path`` file may hold: each is a frame (and, in (c), a set of Gaussians
+#: of its own); a video path is tens to hundreds of frames.
+MAX_PATH_CAMERAS = 2000
+#: Targets predicted at once: memory stays that of ``PATH_CHUNK`` targets' Gaussians, however
+#: long the path.
+PATH_CHUNK = 8
+
+
+def predict_own_views(model, args: argparse.Namespace) -> Prediction:
+    """``--images`` and ``--cameras``: the model's ``Prediction`` for ``--path``, predicted
+    ``PATH_CHUNK`` targets at a time (``gaussians`` holds the first target's only: what
+    ``run`` writes as a PLY)."""
     views, near, far = own_views(args)
     te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames,
                      tuple(views.images.shape[-2:]))
-    return model.predict(views.images, intrinsics=views.intrinsics,
-                         extrinsics=views.extrinsics, target_intrinsics=tk,
-                         target_extrinsics=te, near=near, far=far,
-                         budget=args.gaussians, rank_by=args.rank_by)
+    if len(te) > MAX_PATH_CAMERAS:
+        raise ValueError(f"--path {args.path} holds {len(te):,} cameras (at most "
+                         f"{MAX_PATH_CAMERAS:,} frames): keep every k-th camera, or split the "
+                         f"file and render the parts")
+    parts = [model.predict(views.images, intrinsics=views.intrinsics,
+                           extrinsics=views.extrinsics, target_intrinsics=tk[i:i + PATH_CHUNK],
+                           target_extrinsics=te[i:i + PATH_CHUNK], near=near, far=far,
+                           budget=args.gaussians, rank_by=args.rank_by)
+             for i in range(0, len(te), PATH_CHUNK)]
+    return Prediction(gaussians=parts[0].gaussians[:1],
+                      **{k: torch.cat([getattr(p, k) for p in parts])
+                         for k in ("color", "alpha", "depth")})
 
 
 def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,

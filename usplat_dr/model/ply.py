@@ -24,6 +24,7 @@ from torch import Tensor
 
 from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz, quat_xyzw_to_matrix
 from usplat_dr.io import atomic_open
+from usplat_dr.io.user_files import read_bytes
 from usplat_dr.model.sh_rotation import fibonacci_sphere
 from usplat_dr.model.types import Gaussians
 from usplat_dr.render.sh import sh_basis
@@ -137,6 +138,10 @@ def _vertex_layout(path, header: list[str]) -> tuple[np.dtype, int, int]:
     raise ValueError(f"{path}: no 'vertex' element (not a point cloud)")
 
 
+#: Bytes a PLY may hold: 16M Gaussians of SH degree 3 (62 float32 each) are about 4 GB.
+MAX_PLY_BYTES = 4 * 2**30
+
+
 def read_ply(path: str | os.PathLike) -> dict:
     """A 3DGS PLY (graphdeco layout) as tensors: ``means`` [G,3], ``covariances``
     [G,3,3], ``harmonics`` [G,3,(D+1)^2] (3DGS basis), ``opacities`` [G], ``scales`` [G,3],
@@ -147,7 +152,7 @@ def read_ply(path: str | os.PathLike) -> dict:
     any scalar type) are ignored; every property is read as float32. Anything else (not a
     binary 3DGS PLY, truncated, a Gaussian with NaN or infinite values) is a ``ValueError``
     naming the file."""
-    raw = Path(path).read_bytes()
+    raw = read_bytes(path, "PLY file", MAX_PLY_BYTES)  # a FIFO or /dev/zero: refused
     marker = raw.find(b"end_header\n")
     if not raw.startswith(b"ply") or marker < 0:
         raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
