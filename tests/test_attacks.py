@@ -616,6 +616,27 @@ def test_ply_files_are_regular_and_bounded(tmp_path):
         COUNTS[(BOUNDS, "error naming the file")] += 1
 
 
+def test_an_add_on_base_is_hashed_only_when_regular_and_bounded(tmp_path):
+    from usplat_dr.training.checkpoints import MAX_CHECKPOINT_BYTES, read_usplat_checkpoint
+
+    addon = tmp_path / "addon.pt"
+    torch_save({"base": {"file": "base.pt", "sha256": "0" * 64}, "model": {}}, addon)
+    with open(tmp_path / "base.pt", "wb") as f:  # sparse: no disk used, a terabyte to hash
+        f.truncate(MAX_CHECKPOINT_BYTES + 1)
+    with deadline(HANG_S), pytest.raises(ValueError, match="bytes, more than"):
+        read_usplat_checkpoint(addon)
+    (tmp_path / "base.pt").unlink()
+    os.mkfifo(tmp_path / "base.pt")
+    with deadline(HANG_S), pytest.raises((ValueError, FileNotFoundError)):
+        read_usplat_checkpoint(addon)  # a FIFO is no file: never opened
+    COUNTS[(BOUNDS, "error naming the file")] += 2
+    for name in ("../base.pt", "/etc/base.pt", "sub/base.pt"):
+        torch_save({"base": {"file": name, "sha256": "0" * 64}, "model": {}}, addon)
+        with pytest.raises(ValueError, match="not a .pt file name"):
+            read_usplat_checkpoint(addon)
+        COUNTS[(READS, "error naming the file")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

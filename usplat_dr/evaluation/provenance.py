@@ -20,6 +20,7 @@ import torch
 
 from usplat_dr import portable
 from usplat_dr.data.chunks import read_index
+from usplat_dr.io.user_files import sha256
 
 #: Files that define a dataset's content: chunks, their index and the evaluation indices.
 DATA_PATTERNS = ("*/index.json", "*/*.torch", "evaluation_index_*.json")
@@ -53,6 +54,10 @@ def environment() -> dict:
     return info
 
 
+#: Bytes one dataset file may hold when hashed (the field's chunks are about 100 MB).
+MAX_DATASET_FILE_BYTES = 16 * 2**30
+
+
 def dataset_hash(root: str | os.PathLike) -> str:
     """SHA-256 over a dataset folder's chunk files, ``index.json`` files and evaluation
     indices (relative path and bytes, in sorted order): equal hashes mean the same data."""
@@ -63,9 +68,7 @@ def dataset_hash(root: str | os.PathLike) -> str:
     h = hashlib.sha256()
     for p in files:
         h.update(p.relative_to(root).as_posix().encode() + b"\0")
-        with open(p, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
+        sha256(p, "dataset file", MAX_DATASET_FILE_BYTES, digest=h)  # a FIFO: refused
     return h.hexdigest()
 
 

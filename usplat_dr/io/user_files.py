@@ -15,6 +15,7 @@ Examples:
     ValueError: image '../../etc/passwd' leaves /data/scene: data files may name only ...
 """
 
+import hashlib
 import io
 import os
 import stat
@@ -64,6 +65,23 @@ def read_bytes(path: str | os.PathLike, what: str, max_bytes: int = MAX_DATA_BYT
     if len(data) > max_bytes:
         raise ValueError(f"{what} {path} grew past {max_bytes:,} bytes while being read")
     return data
+
+
+def sha256(path: str | os.PathLike, what: str, max_bytes: int = MAX_DATA_BYTES,
+           digest=None) -> str:
+    """The SHA-256 of ``regular_file(path, what, max_bytes)``'s bytes, read in 1 MiB blocks
+    and never past ``max_bytes``; with ``digest`` (a ``hashlib`` object), the bytes update it
+    (its hex digest is returned)."""
+    path = regular_file(path, what, max_bytes)
+    digest = digest if digest is not None else hashlib.sha256()
+    left = max_bytes
+    with open(path, "rb") as f:
+        while block := f.read(min(1 << 20, left + 1)):
+            left -= len(block)
+            if left < 0:
+                raise ValueError(f"{what} {path} grew past {max_bytes:,} bytes while being read")
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def inside(folder: Path, name: str, what: str) -> Path:

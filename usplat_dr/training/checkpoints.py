@@ -6,7 +6,6 @@ trained (a) as the start of (b) and (c) (``init_from_checkpoint``), a shippable 
 
 import contextlib
 import dataclasses
-import hashlib
 import json
 import logging
 import os
@@ -17,6 +16,7 @@ import torch
 from usplat_dr.config import ConfigError
 from usplat_dr.data.chunks import MAX_IMAGE_PIXELS
 from usplat_dr.io import load_torch_file, torch_save
+from usplat_dr.io.user_files import sha256
 from usplat_dr.model import UniqueSplat, UniqueSplatCfg
 from usplat_dr.model.checkpoint import check_state_dict
 
@@ -46,12 +46,12 @@ def read_usplat_checkpoint(checkpoint: str | os.PathLike, map_location="cpu",
     return state
 
 
+#: Bytes a checkpoint file may hold (the paper preset's MVSplat checkpoint is about 150 MB).
+MAX_CHECKPOINT_BYTES = 4 * 2**30
+
+
 def _file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    return sha256(path, "checkpoint", MAX_CHECKPOINT_BYTES)
 
 
 def _on_base(path: Path, state: dict, map_location, trust: bool) -> dict:
