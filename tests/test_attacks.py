@@ -637,6 +637,56 @@ def test_an_add_on_base_is_hashed_only_when_regular_and_bounded(tmp_path):
         COUNTS[(READS, "error naming the file")] += 1
 
 
+def nerfstudio_scene(folder: Path, top: dict | None = None, frame: dict | None = None) -> Path:
+    """Two 64x48 images and a transforms.json; ``top`` and ``frame`` (the first frame's)
+    entries override the valid ones."""
+    folder.mkdir(parents=True)
+    for name in ("a.png", "b.png"):
+        Image.new("RGB", (64, 48)).save(folder / name)
+    moved = np.eye(4)
+    moved[0, 3] = 1.0
+    meta = {"fl_x": 50, "w": 64, "h": 48,
+            "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()},
+                       {"file_path": "b.png", "transform_matrix": moved.tolist()}]}
+    meta.update(top or {})
+    meta["frames"][0].update(frame or {})
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder
+
+
+@pytest.mark.parametrize("case, top, frame, needle", [
+    ("zero focal length", {"fl_x": 0}, None, "positive size and focal length"),
+    ("infinite focal length", {"fl_x": 1e400}, None, "must be finite"),
+    ("NaN centre", {"cx": float("nan")}, None, "must be finite"),
+    ("width of text", {"w": "abc"}, None, "invalid literal"),
+    ("NaN pose", None, {"transform_matrix": [[float("nan")] * 4] * 4}, "not finite"),
+    ("singular pose", None, {"transform_matrix": [[0] * 4] * 4}, "not a rigid transform"),
+    ("scaled pose", None, {"transform_matrix": np.diag([3.0, 3, 3, 1]).tolist()},
+     "not a rotation"),
+    ("mirrored pose", None, {"transform_matrix": np.diag([-1.0, 1, 1, 1]).tolist()},
+     "not a rotation"),
+    ("pose of text", None, {"transform_matrix": "abc"}, "could not convert"),
+    ("3x3 pose", None, {"transform_matrix": np.eye(3).tolist()}, "must be 4x4"),
+    ("file_path a number", None, {"file_path": 5}, "is not a file name"),
+])
+def test_absurd_cameras_end_in_one_line_naming_the_frame(tmp_path, capsys, monkeypatch, case,
+                                                         top, frame, needle):
+    folder = nerfstudio_scene(tmp_path / "s", top, frame)
+    err = run_import(["--nerfstudio", str(folder)], tmp_path / "out", capsys, monkeypatch)
+    assert needle in err and "transforms.json frame" in err, (case, err)
+    COUNTS[(SKIPS, "error naming the file")] += 1
+
+
+@pytest.mark.parametrize("qvec", ["0 0 0 0", "nan 0 0 0", "1 inf 0 0"])
+def test_colmap_quaternions_that_are_no_rotation_end_in_one_line(tmp_path, capsys, monkeypatch,
+                                                                 qvec):
+    folder = own_colmap(tmp_path / "m")
+    (folder / "images.txt").write_text(f"1 {qvec} 0 0 5 1 a.png\n\n2 1 0 0 0 1 0 5 1 b.png\n\n")
+    err = run_import(["--colmap", str(folder)], tmp_path / "out", capsys, monkeypatch)
+    assert "image 'a.png'" in err and "quaternion" in err, err
+    COUNTS[(SKIPS, "error naming the file")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

@@ -252,7 +252,11 @@ def qvec_to_rotation(qvec: np.ndarray) -> np.ndarray:
         >>> qvec_to_rotation(np.array([0.0, 0.0, 0.0, 1.0])).round(6).tolist()  # 180 deg about z
         [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
     """
-    w, x, y, z = qvec / np.linalg.norm(qvec)
+    norm = float(np.linalg.norm(qvec))
+    if not math.isfinite(norm) or norm < 1e-8:
+        raise ValueError(f"quaternion {np.asarray(qvec).tolist()} is zero or not finite: not "
+                         f"a rotation")
+    w, x, y, z = qvec / norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
@@ -305,11 +309,14 @@ def read_colmap(folder: str | os.PathLike, images: str | os.PathLike | None = No
         cam = cameras[cam_id]
         fx, fy, cx, cy = colmap_pinhole(cam, f"{model / ('cameras' + ext)} camera {cam_id}",
                                         ignore_distortion)
-        w2c = np.eye(4)
-        w2c[:3, :3] = qvec_to_rotation(qvec)
-        w2c[:3, 3] = tvec
-        c2w.append(np.linalg.inv(w2c))
-        intr.append(normalised_intrinsics(fx, fy, cx, cy, cam.width, cam.height))
+        try:
+            w2c = np.eye(4)
+            w2c[:3, :3] = qvec_to_rotation(qvec)
+            w2c[:3, 3] = tvec
+            c2w.append(np.linalg.inv(rigid(w2c, "the pose")))
+            intr.append(normalised_intrinsics(fx, fy, cx, cy, cam.width, cam.height))
+        except ValueError as e:
+            raise ValueError(f"{images_file}: image {name!r}: {e}") from None
         shapes.append((cam.height, cam.width))
         paths.append(inside(image_dir, name, f"{images_file}: image name"))
     return ImportedScene(paths, np.stack(c2w), np.stack(intr), np.array(shapes), points, model)
@@ -327,6 +334,31 @@ def _colmap_image_dir(model: Path, images: str | os.PathLike | None) -> Path:
                             f"and ../../images/): pass --images DIR")
 
 
+def rigid(m: np.ndarray, what: str) -> np.ndarray:
+    """``m`` [4, 4] when it is a rigid camera-to-world transform (finite, last row 0 0 0 1, a
+    rotation: orthonormal to 1e-3, determinant +1), else a ``ValueError`` naming ``what``.
+
+    Examples:
+        >>> rigid(np.diag([2.0, 2.0, 2.0, 1.0]), "pose")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: pose is not a rigid transform: its 3x3 part is not a rotation (R^T R ...
+    """
+    if not np.isfinite(m).all():
+        raise ValueError(f"{what} is not finite (NaN or infinite entries)")
+    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        raise ValueError(f"{what} is not a rigid transform: its last row is {m[3].tolist()}, "
+                         f"not [0, 0, 0, 1]")
+    r = m[:3, :3]
+    off = float(np.abs(r.T @ r - np.eye(3)).max())
+    det = float(np.linalg.det(r))
+    if off > 1e-3 or det < 0:
+        raise ValueError(f"{what} is not a rigid transform: its 3x3 part is not a rotation "
+                         f"(R^T R differs from I by {off:.3g}, det {det:.3g}): undo the scale "
+                         f"first")
+    return m
+
+
 def normalised_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int,
                           height: int) -> np.ndarray:
     """[3, 3] intrinsics normalised by the image size: row 0 / W, row 1 / H (the chunk
@@ -336,6 +368,9 @@ def normalised_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int
         >>> normalised_intrinsics(500.0, 400.0, 320.0, 240.0, 640, 480).tolist()
         [[0.78125, 0.0, 0.5], [0.0, 0.8333333333333334, 0.5], [0.0, 0.0, 1.0]]
     """
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)):
+        raise ValueError(f"a camera's focal length and centre must be finite, got fx {fx}, "
+                         f"fy {fy}, cx {cx}, cy {cy}")
     if width <= 0 or height <= 0 or fx <= 0 or fy <= 0:
         raise ValueError(f"a camera needs a positive size and focal length, got {width}x"
                          f"{height}, fx {fx}, fy {fy}")
@@ -401,17 +436,20 @@ def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False
                                  "--ignore-distortion to drop it")
             log.warning("%s: dropping the distortion %s (--ignore-distortion)", where,
                         distortion)
-        w, h = int(get("w")), int(get("h"))
-        fx = float(get("fl_x"))
-        fy = float(get("fl_y", fx))
-        m = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        if m.shape == (3, 4):
-            m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
-        if m.shape != (4, 4):
-            raise ValueError(f"{where}: transform_matrix must be 4x4 (or 3x4), got {m.shape}")
-        c2w.append(m @ OPENGL_TO_OPENCV)
-        intr.append(normalised_intrinsics(fx, fy, float(get("cx", w / 2)),
-                                          float(get("cy", h / 2)), w, h))
+        try:
+            w, h = int(get("w")), int(get("h"))
+            fx = float(get("fl_x"))
+            fy = float(get("fl_y", fx))
+            m = np.asarray(frame["transform_matrix"], dtype=np.float64)
+            if m.shape == (3, 4):
+                m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
+            if m.shape != (4, 4):
+                raise ValueError(f"transform_matrix must be 4x4 (or 3x4), got {m.shape}")
+            c2w.append(rigid(m, "transform_matrix") @ OPENGL_TO_OPENCV)
+            intr.append(normalised_intrinsics(fx, fy, float(get("cx", w / 2)),
+                                              float(get("cy", h / 2)), w, h))
+        except (TypeError, ValueError, OverflowError) as e:
+            raise ValueError(f"{where}: {e}") from None
         shapes.append((h, w))
         paths.append(inside(folder, frame["file_path"], f"{where}: file_path"))
     return ImportedScene(paths, np.stack(c2w), np.stack(intr), np.array(shapes), None, folder)

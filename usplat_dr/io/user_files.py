@@ -84,7 +84,7 @@ def sha256(path: str | os.PathLike, what: str, max_bytes: int = MAX_DATA_BYTES,
     return digest.hexdigest()
 
 
-def inside(folder: Path, name: str, what: str) -> Path:
+def inside(folder: Path, name: object, what: str) -> Path:
     """``folder / name`` where ``name`` (read from a data file in ``folder``) stays inside
     ``folder``: an absolute name or one whose ``..`` leave it is refused. Symbolic links
     inside the folder are the user's own and are followed."""
