@@ -687,6 +687,34 @@ def test_colmap_quaternions_that_are_no_rotation_end_in_one_line(tmp_path, capsy
     COUNTS[(SKIPS, "error naming the file")] += 1
 
 
+@pytest.mark.parametrize("variable, value", [
+    ("USPLAT_THREADS", "0"), ("USPLAT_THREADS", "abc"), ("USPLAT_THREADS", "99999"),
+    ("USPLAT_THREADS", "-3"), ("USPLAT_OMP_SPIN", "abc"), ("USPLAT_OMP_SPIN", "-1")])
+def test_environment_variables_set_wrong(tmp_path, variable, value):
+    import sys
+
+    env = {**os.environ, variable: value}
+    env.pop("GOMP_SPINCOUNT", None)
+    env.pop("OMP_WAIT_POLICY", None)
+    # importing the library never fails on a tuning variable: a warning names it
+    imported = subprocess.run([sys.executable, "-c", "import usplat_dr"], env=env, check=False,
+                              capture_output=True, text=True, timeout=120)
+    assert imported.returncode == 0, imported.stderr
+    if variable == "USPLAT_OMP_SPIN":
+        assert "USPLAT_OMP_SPIN" in imported.stderr
+    # a command: one line naming the variable and exit 2, or runs with libgomp's default
+    cmd = subprocess.run([sys.executable, "-m", "usplat_dr.cli", "-q", "synth", "--out",
+                          str(tmp_path / "out"), "--scenes", "1", "--frames", "3",
+                          "--resolution", "8", "8", "--spp", "1"], env=env, check=False,
+                         capture_output=True, text=True, timeout=300)
+    if variable == "USPLAT_THREADS":
+        lines = [x for x in cmd.stderr.splitlines() if x.strip()]
+        assert cmd.returncode == 2 and len(lines) == 1 and variable in lines[0], cmd.stderr
+    else:
+        assert cmd.returncode == 0, cmd.stderr
+    COUNTS[(SKIPS, "error naming the variable" if cmd.returncode else "warning")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

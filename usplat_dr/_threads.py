@@ -30,6 +30,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,8 +55,12 @@ def configure() -> str | None:
         outcome = "set outside usplat_dr (it wins)"
         return None
     if not choice.isdigit():
-        raise ValueError(f"{SPIN_ENV_VAR} must be a non-negative integer or 'off', got "
-                         f"{os.environ[SPIN_ENV_VAR]!r}")
+        # at import a ValueError would be a traceback in every program that imports us; a
+        # tuning knob set wrong leaves libgomp's default, said by a warning and by doctor
+        outcome = (f"not set: {SPIN_ENV_VAR}={os.environ[SPIN_ENV_VAR]!r} is not a "
+                   f"non-negative integer or 'off' (libgomp's default is used)")
+        warnings.warn(outcome, stacklevel=3)
+        return None
     os.environ["GOMP_SPINCOUNT"] = choice
     outcome = f"set by usplat_dr ({SPIN_ENV_VAR}, default {DEFAULT_SPIN})"
     return choice
@@ -185,6 +190,10 @@ def choose(setting: str | None = None, measure=recent_busy_cores) -> Choice:
     value = str(raw).strip().lower()
     allowed = allowed_cores()
     if value.isdigit() and int(value) >= 1:
+        cpus = os.cpu_count() or 1
+        if int(value) > cpus:  # more threads than CPUs only time-slice (thousands fail)
+            raise ValueError(f"{THREADS_ENV_VAR}={raw} is more than this machine's {cpus} "
+                             f"CPUs: give at most {cpus}, 'all' or 'auto'")
         return Choice(int(value), allowed, None, f"{THREADS_ENV_VAR}={value}")
     if value == "all":
         return Choice(allowed, allowed, None, f"{allowed} core(s) allowed; {THREADS_ENV_VAR}=all")

@@ -114,13 +114,16 @@ def _numerics(llvm: bool) -> list[str]:
         pinned = "pinned" if pins["drjit_target"] else "not pinned: the host CPU's"
         print(f"  Dr.Jit LLVM target: {target[0]}, {target[2]} float lanes ({pinned})")
     print(f"  OpenMP spin: {_threads.describe()}")
+    problems = []
+    if _threads.outcome.startswith("not set: "):  # a value usplat_dr could not use
+        problems.append(f"OpenMP spin {_threads.outcome}")
     try:
         choice = _threads.choose()
         print(f"  usplat's commands start with {choice.line()}")
     except ValueError as e:
         print(f"  threads: {e}")
-        return [str(e)]
-    return []
+        problems.append(str(e))
+    return problems
 
 
 def _core_keeper() -> None:
