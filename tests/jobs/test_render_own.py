@@ -92,3 +92,21 @@ def test_mistakes_name_the_argument(user_scene, capsys, extra, needle):
     assert main(["-q", "render", "--checkpoint", "tiny_full",
                  *[fill.get(x, x) for x in extra]]) == 2
     assert needle in capsys.readouterr().err
+
+
+def test_the_readme_python_block_runs_on_a_users_project(user_scene):
+    """The README's ``predict`` block, with its ``project/`` paths pointed at a generated
+    COLMAP project, runs as written and renders what ``usplat render --path`` would."""
+    from tests.test_readme import README, fenced_blocks
+
+    [block] = [b for b in fenced_blocks(README.read_text(), "python") if ".predict(" in b]
+    root = user_scene.root
+    code = (block.replace("project/sparse/0", str(root / "sparse" / "0"))
+            .replace("project/images/a.png", str(root / "images" / user_scene.names[1]))
+            .replace("project/images/b.png", str(root / "images" / user_scene.names[3])))
+    assert code != block and "project/" not in code
+    scope: dict = {}
+    exec(compile(code, "README.md", "exec"), scope)  # noqa: S102  (the README's own code)
+    pred = scope["pred"]
+    assert pred.color.shape == (len(user_scene.names), 3, 64, 64)
+    assert len(pred.gaussians) == len(user_scene.names)

@@ -247,6 +247,19 @@ def read_index(stage_dir: str | os.PathLike) -> dict[str, str]:
     return index
 
 
+def metadata_folder(out: str | os.PathLike, stage: str) -> Path:
+    """Where a writer of ``stage`` (``usplat synth``, ``usplat import``) puts its evaluation
+    indices and other metadata: ``out`` for the test stage (as always: evaluation reads
+    ``<out>/evaluation_index_*.json``), ``out/<stage>`` for the others, so that the stages of
+    one root never overwrite each other's.
+
+    Examples:
+        >>> metadata_folder("d", "test").as_posix(), metadata_folder("d", "train").as_posix()
+        ('d', 'd/train')
+    """
+    return Path(out) if stage == "test" else Path(out) / stage
+
+
 def write_index(stage_dir: str | os.PathLike, index: dict[str, str]) -> Path:
     return write_json(Path(stage_dir) / "index.json", dict(sorted(index.items())))
 

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras
+from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras, metadata_folder
 from usplat_dr.io import write_json
 from usplat_dr.io.user_files import check_resize, inside, read_bytes, read_image
 
@@ -557,7 +557,9 @@ def import_scene(scene: ImportedScene, out: str | os.PathLike, stage: str = "tes
     """Write ``scene`` as a dataset root ``out``: ``<out>/<stage>/000000.torch`` +
     ``index.json`` (one record: ``key``, ``url`` (the source folder), ``timestamps`` (frame
     numbers), ``cameras``, ``images``, ``near_far``, ``names`` (the image file names)) and
-    ``<out>/evaluation_index_standard.json`` (``standard_entry``). ``near``/``far`` default
+    its ``evaluation_index_standard.json`` (``standard_entry``) in
+    ``chunks.metadata_folder(out, stage)`` (``out`` for the test stage, ``out/train`` for the
+    train stage). ``near``/``far`` default
     to ``near_far_from_points`` (an error without points). Returns a summary dict."""
     if stage not in ("train", "test"):
         raise ValueError(f"stage must be 'train' or 'test', got {stage!r}")
@@ -603,9 +605,11 @@ def import_scene(scene: ImportedScene, out: str | os.PathLike, stage: str = "tes
               "names": [p.name for p in scene.image_paths]}
     with ChunkWriter(out, stage) as writer:
         writer.add(record)
-    write_json(out / "evaluation_index_standard.json", {key: entry})
+    # beside the stage's own metadata (the test stage's at the root): a train-stage import
+    # into the root of a test one keeps the test stage's index
+    index = metadata_folder(out, stage) / "evaluation_index_standard.json"
+    write_json(index, {key: entry})
     h, w = images[0].shape[:2]
     return {"key": key, "views": views, "image_shape": [h, w], "near_far": [near, far],
-            "stage_dir": str(out / stage), "evaluation_index":
-            str(out / "evaluation_index_standard.json"), "context": entry["context"],
-            "target": entry["target"]}
+            "stage_dir": str(out / stage), "evaluation_index": str(index),
+            "context": entry["context"], "target": entry["target"]}

@@ -91,4 +91,10 @@ def run(args: argparse.Namespace) -> int:
                        prune=PruneSettings(merge=True) if args.prune else None,
                        provenance=record, budget=args.gaussians, rank_by=args.rank_by)
     print(json.dumps(summary, indent=1))
+    if not any(split["scenes"] for split in summary["splits"].values()):
+        first = next(iter(summary["splits"].items()))
+        raise ValueError(f"--data {args.data}: no scene was scored ({first[0]}: "
+                         f"{first[1]['coverage']}): the evaluation indices name scenes the "
+                         f"data do not hold, or every scene was skipped (the warnings above "
+                         f"say why)")
     return 0

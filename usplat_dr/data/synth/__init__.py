@@ -30,7 +30,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras, read_index
+from usplat_dr.data.chunks import (
+    ChunkWriter,
+    encode_image,
+    matrices_to_cameras,
+    metadata_folder,
+    read_index,
+)
 from usplat_dr.data.synth.render import render_spec
 from usplat_dr.data.synth.scenes import APPEARANCES, KINDS, make_spec
 from usplat_dr.data.synth.splits import SPLITS, scene_splits
@@ -50,9 +56,9 @@ DEFAULT_SPP = {"diffuse": 64, "view-dependent": 256, "rough-glossy": 256}
 #: The seed of each stage when none is given: different, so that a train and a test set made
 #: without ``--seed`` share no scene (test keeps 0, the seed its default always had).
 DEFAULT_SEEDS = {"test": 0, "train": 1}
-#: The stages ``usplat synth`` writes, and the one whose metadata stays at the root.
+#: The stages ``usplat synth`` writes (the test stage's metadata stays at the root:
+#: ``usplat_dr.data.chunks.metadata_folder``).
 STAGES = ("train", "test")
-ROOT_STAGE = "test"
 
 
 def default_seed(stage: str) -> int:
@@ -65,18 +71,6 @@ def default_seed(stage: str) -> int:
     if stage not in DEFAULT_SEEDS:
         raise ValueError(f"stage must be one of {sorted(DEFAULT_SEEDS)}, got {stage!r}")
     return DEFAULT_SEEDS[stage]
-
-
-def metadata_folder(out: str | os.PathLike, stage: str) -> Path:
-    """Where ``synthesize`` writes ``stage``'s evaluation indices, ``splits.json``,
-    ``synth.json`` and ``previews/``: ``out`` for the test stage (as always: evaluation reads
-    ``<out>/evaluation_index_*.json``), ``out/<stage>`` for the others.
-
-    Examples:
-        >>> metadata_folder("d", "test").as_posix(), metadata_folder("d", "train").as_posix()
-        ('d', 'd/train')
-    """
-    return Path(out) if stage == ROOT_STAGE else Path(out) / stage
 
 
 def scene_key(kind: str, seed: int, i: int, appearance: str = "diffuse") -> str:
