@@ -57,6 +57,10 @@ def overrides(root: Path, out: Path, steps: int, *extra: str) -> list[str]:
             "dataset.view_sampler.initial_max_distance_between_context_views=6", *extra]
 
 
+#: The schedule of the ``trained`` run (a resume must pass the run's train.steps).
+RUN_STEPS = 4
+
+
 def usplat_train(*args: str) -> list[str]:
     return ["-q", "train", "--config", "synthetic_tiny.yaml", *args]
 
@@ -68,12 +72,17 @@ def data(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def trained(data, tmp_path_factory) -> Path:
-    """A run folder after 2 steps (a checkpoint at step 2, metrics rows 1 and 2)."""
+    """A run folder stopped after 2 of its ``RUN_STEPS`` steps (a checkpoint at step 2,
+    metrics rows 1 and 2), as a killed run leaves it: resumes pass the same schedule."""
     import drjit as dr
+
+    class StopAfterTwo(Trainer):
+        def after_step(self, stats, last, run_log):
+            return super().after_step(stats, last, run_log) or self.step >= 2
 
     out = tmp_path_factory.mktemp("trained")
     torch_threads, dr_threads = torch.get_num_threads(), dr.thread_count()
-    Trainer(load_config(["synthetic_tiny.yaml"], overrides(data, out, 2))).fit()
+    StopAfterTwo(load_config(["synthetic_tiny.yaml"], overrides(data, out, RUN_STEPS))).fit()
     torch.set_num_threads(torch_threads)  # the trainer set them to 1 (threads=1)
     dr.set_thread_count(dr_threads)
     return out
@@ -106,7 +115,7 @@ def test_metrics_rows_survive_a_kill_right_after_resume(data, run):
     before = rows(metrics)
     assert [r["step"] for r in before] == ["1", "2"]
     proc = subprocess.Popen([sys.executable, "-m", "usplat_dr",
-                             *usplat_train("--resume", *overrides(data, run, 6))],
+                             *usplat_train("--resume", *overrides(data, run, RUN_STEPS))],
                             env=environment(), stderr=subprocess.PIPE)
     try:
         # the first write of metrics.csv after the resume: strike at once
@@ -160,7 +169,8 @@ def test_a_run_removes_the_temporary_files_killed_writes_left(data, run, tmp_pat
     for path in leftovers + kept:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("x")
-    assert main(usplat_train("--resume", *overrides(data, run, 3))) == 0, capsys.readouterr()
+    assert main(usplat_train("--resume", *overrides(data, run, RUN_STEPS))) == 0, \
+        capsys.readouterr()
     assert not any(p.exists() for p in leftovers)
     assert all(p.exists() for p in kept)
 
@@ -225,9 +235,17 @@ def test_a_run_without_a_test_stage_validates_on_a_training_example(tmp_path):
 def test_resuming_another_model_names_the_setting(data, run, capsys, change):
     key, now = change.split("=")
     was = {"model.variant": "baseline", "model.preset": "tiny"}[key]
-    err = one_line_error(capsys, main(usplat_train("--resume", *overrides(data, run, 4),
+    err = one_line_error(capsys, main(usplat_train("--resume", *overrides(data, run, RUN_STEPS),
                                                    change)))
     assert f"{key}={was}" in err and f"{key}={now}" in err and "last.ckpt" in err
+
+
+def test_resuming_with_another_schedule_names_the_settings(data, run, capsys):
+    # before: the schedule, sized for RUN_STEPS, raised torch's "Tried to step N times" one
+    # step past the run's end, and the steps since the last checkpoint were lost
+    err = one_line_error(capsys, main(usplat_train("--resume", *overrides(data, run, 2000))))
+    assert f"train.steps={RUN_STEPS} (this run: 2000)" in err and f"pass train.steps={RUN_STEPS}" \
+        in err
 
 
 def truncate(path: Path) -> None:
@@ -243,7 +261,7 @@ def drop_optimizer(path: Path) -> None:
 @pytest.mark.parametrize("damage", [truncate, drop_optimizer])
 def test_a_damaged_checkpoint_names_the_file_and_the_fix(data, run, capsys, damage):
     damage(run / "checkpoints" / "last.ckpt")
-    err = one_line_error(capsys, main(usplat_train("--resume", *overrides(data, run, 4))))
+    err = one_line_error(capsys, main(usplat_train("--resume", *overrides(data, run, RUN_STEPS))))
     assert "last.ckpt" in err and "move it away" in err
 
 

@@ -440,6 +440,7 @@ class Trainer:
             return False
         state = self._resumable_state(path)
         self._check_same_model(path, state)
+        self._check_same_schedule(path, state)
         try:
             self.model.load_state_dict(state["model"])
             self.optimizer.load_state_dict(state["optimizer"])
@@ -481,6 +482,34 @@ class Trainer:
                               f"checkpoint, or a shipped weights file: only usplat train's own "
                               f"last.ckpt resumes): move it away to start again from step 0")
         return state
+
+    #: Settings fixed when a run starts (the learning-rate schedule's length and shape, the
+    #: batch the data position counts in): a resume with other values would run a schedule
+    #: that does not fit its optimiser state (torch: "Tried to step N times").
+    SCHEDULE_KEYS = ("train.steps", "optimizer.lr", "optimizer.warm_up_fraction",
+                     "optimizer.hyper_lr_scale", "data_loader.batch_size")
+
+    def _check_same_schedule(self, path: Path, state: dict) -> None:
+        """A ``ConfigError`` at the start of a resume whose schedule settings differ from the
+        run's (each named, with the value to pass), before any step is taken."""
+        saved = state.get("config")
+        if not isinstance(saved, dict):  # (checkpoints without their config: not checked)
+            return
+        differ = []
+        for key in self.SCHEDULE_KEYS:
+            section, name = key.split(".")
+            was = saved.get(section, {}).get(name) if isinstance(saved.get(section), dict) \
+                else None
+            now = getattr(getattr(self.config, section), name)
+            if was is not None and was != now:
+                differ.append((key, was, now))
+        if differ:
+            raise ConfigError(
+                f"--resume: {path} was started with "
+                + ", ".join(f"{k}={w!r} (this run: {n!r})" for k, w, n in differ)
+                + ": pass " + " ".join(f"{k}={w}" for k, w, _ in differ)
+                + " to resume it (a run's schedule is fixed at its start), or choose another "
+                  "output_dir")
 
     def _check_same_model(self, path: Path, state: dict) -> None:
         """A ``ConfigError`` when the checkpoint's model is not the one this run builds,
