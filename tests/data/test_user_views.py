@@ -57,7 +57,19 @@ def test_user_mistakes_name_the_argument(user_scene, tmp_path):
         context_views([tmp_path / "nope.png", stray], scene, SHAPE)
     with pytest.raises(FileNotFoundError, match="--cameras .* does not exist"):
         read_cameras(tmp_path / "missing")
-    other = tmp_path / "cams.json"
+    other = tmp_path / "cams.json"  # a .json of another layout
     other.write_text("{}")
-    with pytest.raises(ValueError, match="a camera file is a nerfstudio transforms.json"):
+    with pytest.raises(ValueError, match="cams.json has no 'frames' list"):
         read_cameras(other)
+    with pytest.raises(ValueError, match="--path .*cams.txt: a camera file is a nerfstudio"):
+        (tmp_path / "cams.txt").write_text("")
+        read_cameras(tmp_path / "cams.txt", what="--path")
+    with pytest.raises(FileNotFoundError, match="--path .* does not exist"):
+        read_cameras(tmp_path / "missing", what="--path")
+    # a camera path under another name than transforms.json, its file_path entries relative
+    # to its folder: the same cameras
+    renamed = user_scene.root / "camera_path.json"
+    renamed.write_text((user_scene.root / "transforms.json").read_text())
+    np.testing.assert_array_equal(read_cameras(renamed).extrinsics,
+                                  read_cameras(user_scene.root / "transforms.json").extrinsics)
+    renamed.unlink()  # (the module's scene is shared)

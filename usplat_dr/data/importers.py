@@ -388,19 +388,20 @@ NERFSTUDIO_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 MAX_JSON_BYTES = 256 * 2**20
 
 
-def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False
-                    ) -> ImportedScene:
-    """Read ``<folder>/transforms.json`` (nerfstudio's format): intrinsics ``fl_x``, ``fl_y``,
+def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False,
+                    name: str = "transforms.json") -> ImportedScene:
+    """Read ``<folder>/<name>`` (nerfstudio's format; ``transforms.json`` by default, any
+    file in that layout, a camera path say, otherwise): intrinsics ``fl_x``, ``fl_y``,
     ``cx``, ``cy``, ``w``, ``h`` at the top level or per frame (a frame's own win), and per
     frame ``file_path`` (relative to ``folder``) and ``transform_matrix`` (camera-to-world,
     OpenGL axes)."""
     folder = Path(folder)
-    path = folder / "transforms.json"
+    path = folder / name
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: point --nerfstudio at the folder "
                                 "holding transforms.json (ns-process-data's output)")
     try:
-        meta = json.loads(read_bytes(path, "transforms.json", MAX_JSON_BYTES).decode("utf-8"))
+        meta = json.loads(read_bytes(path, "camera file", MAX_JSON_BYTES).decode("utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path} is not valid JSON ({e})") from None
     except RecursionError:

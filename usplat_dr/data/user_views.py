@@ -38,20 +38,23 @@ class UserViews:
     far: float | None
 
 
-def read_cameras(path: str | os.PathLike, ignore_distortion: bool = False) -> ImportedScene:
+def read_cameras(path: str | os.PathLike, ignore_distortion: bool = False,
+                 what: str = "--cameras") -> ImportedScene:
     """The cameras of a COLMAP model folder (``sparse/0``, or a project folder holding one) or
-    of a nerfstudio ``transforms.json`` (the file or its folder)."""
+    of a nerfstudio-style JSON file (``transforms.json``, or any ``.json`` in that layout, such
+    as a camera path; or the folder holding a ``transforms.json``). ``what`` names the
+    argument in errors."""
     path = Path(path)
     if path.is_file() and path.suffix == ".json":
-        if path.name != "transforms.json":
-            raise ValueError(f"--cameras {path}: a camera file is a nerfstudio "
-                             "transforms.json or a COLMAP model folder")
-        return read_nerfstudio(path.parent, ignore_distortion)
+        return read_nerfstudio(path.parent, ignore_distortion, name=path.name)
+    if path.is_file():
+        raise ValueError(f"{what} {path}: a camera file is a nerfstudio-style .json "
+                         "(transforms.json) or a COLMAP model folder")
     if path.is_dir() and (path / "transforms.json").is_file():
         return read_nerfstudio(path, ignore_distortion)
     if path.is_dir():
         return read_colmap(path, ignore_distortion=ignore_distortion)
-    raise FileNotFoundError(f"--cameras {path} does not exist: pass a COLMAP model folder "
+    raise FileNotFoundError(f"{what} {path} does not exist: pass a COLMAP model folder "
                             "(sparse/0) or a nerfstudio transforms.json")
 
 

@@ -174,7 +174,7 @@ def targets(path: str, context_extrinsics: torch.Tensor, context_intrinsics: tor
     if path == "orbit":
         e = camera_path(context_extrinsics.cpu(), frames).float()
         return e, context_intrinsics[:1].cpu().expand(len(e), 3, 3)
-    return target_cameras(read_cameras(path), image_shape)
+    return target_cameras(read_cameras(path, what="--path"), image_shape)
 
 
 #: Target cameras a ``--path`` file may hold: each is a frame (and, in (c), a set of Gaussians
