@@ -715,6 +715,26 @@ def test_environment_variables_set_wrong(tmp_path, variable, value):
     COUNTS[(SKIPS, "error naming the variable" if cmd.returncode else "warning")] += 1
 
 
+def test_weight_files_that_are_not_torch_files_name_themselves(tmp_path):
+    from usplat_dr.evaluation.lpips import LPIPS
+    from usplat_dr.model.hypernet.resnet import ResNet18
+
+    files = {"text": b"not weights", "empty": b"", "a zip of nothing": b"PK\x05\x06" + bytes(18)}
+    list_file = tmp_path / "list.pth"
+    torch_save([torch.zeros(2)], list_file)
+    for i, data in enumerate(files.values()):
+        path = tmp_path / f"w{i}.pth"
+        path.write_bytes(data)
+        for load in (lambda p: LPIPS.from_files(p, p), lambda p: ResNet18().load_torchvision(p)):
+            with deadline(HANG_S), pytest.raises(ValueError, match=str(path.name)):
+                load(path)
+            COUNTS[(SKIPS, "error naming the file")] += 1
+    for load in (lambda p: LPIPS.from_files(p, p), lambda p: ResNet18().load_torchvision(p)):
+        with pytest.raises(ValueError, match="not a state dict"):
+            load(list_file)
+        COUNTS[(SKIPS, "error naming the file")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

@@ -15,6 +15,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.io.checkpoint_files import load_torch_file
 from usplat_dr.model.checkpoint import check_state_dict
 
 # torchvision's vgg16 ``features``: channel counts, "M" = max pool.
@@ -86,19 +87,18 @@ class LPIPS(nn.Module):
                    ) -> "LPIPS":
         """The network with both weight files loaded strictly; ``LPIPSWeightsMissing`` names
         the file that is missing."""
-        for path, hint, name in ((vgg_path, VGG_HINT, "vgg_path"),
-                                 (lin_path, LIN_HINT, "lin_path")):
+        for path, hint, name in ((vgg_path, VGG_HINT, "vgg"), (lin_path, LIN_HINT, "lin")):
             if path is None or not Path(path).is_file():
                 raise LPIPSWeightsMissing(
-                    f"LPIPS needs {hint}; {name}={str(path)!r} is not a file. Provide it (e.g. "
-                    f"loss.lpips.{name}=... / --lpips-{name.split('_')[0]} ...) or turn LPIPS "
-                    f"off")
+                    f"LPIPS needs {hint}; {str(path)!r} is not a file. Provide it "
+                    f"(training: loss.lpips_{name}=FILE; usplat eval: --lpips-{name} FILE) or "
+                    f"turn LPIPS off (loss.lpips=0)")
         model = cls()
-        vgg = torch.load(vgg_path, map_location="cpu", weights_only=True)
+        vgg = _state_dict(vgg_path, "VGG16 weights")
         vgg = {k: v for k, v in vgg.items() if k.startswith("features.")}
         check_state_dict(model.net, vgg, what=f"VGG16 weights {vgg_path}")
         model.net.load_state_dict(vgg, strict=True)
-        lin = torch.load(lin_path, map_location="cpu", weights_only=True)
+        lin = _state_dict(lin_path, "LPIPS linear weights")
         lin_modules = nn.ModuleDict({f"lin{i}": getattr(model, f"lin{i}") for i in range(5)})
         check_state_dict(lin_modules, lin, what=f"LPIPS linear weights {lin_path}")
         lin_modules.load_state_dict(lin, strict=True)
@@ -120,3 +120,13 @@ class LPIPS(nn.Module):
             d = getattr(self, f"lin{i}").model((fx - fy).square())
             total = total + d.mean((-2, -1))
         return total[:, 0]
+
+
+def _state_dict(path: str | os.PathLike, what: str) -> dict:
+    """A weight file as a dict of tensors, read safely (``load_torch_file``: a file that is
+    not a torch file, or holds code, is an error naming it)."""
+    state = load_torch_file(path, what)
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor)
+                                              for v in state.values()):
+        raise ValueError(f"{what} {str(path)!r} is not a state dict (names -> tensors)")
+    return state

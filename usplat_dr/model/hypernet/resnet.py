@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.io.checkpoint_files import load_torch_file
 from usplat_dr.model.checkpoint import check_state_dict
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,10 @@ class ResNet18(nn.Module):
                         "resnet18-f37072fd.pth, for the paper's ImageNet-pretrained backbone)",
                         path)
             return False
-        sd = torch.load(path, map_location="cpu", weights_only=True)
+        sd = load_torch_file(path, "ResNet18 weights")  # not a torch file: an error naming it
+        if not isinstance(sd, dict):
+            raise ValueError(f"ResNet18 weights {str(path)!r} are not a state dict (names -> "
+                             f"tensors)")
         absent = {"fc"} if self.fc is None else set()
         absent |= {f"layer{i + 1}" for i in range(self.stages, 4)}
         sd = {k: v for k, v in sd.items() if k.split(".")[0] not in absent}
