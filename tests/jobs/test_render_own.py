@@ -110,3 +110,16 @@ def test_the_readme_python_block_runs_on_a_users_project(user_scene):
     pred = scope["pred"]
     assert pred.color.shape == (len(user_scene.names), 3, 64, 64)
     assert len(pred.gaussians) == len(user_scene.names)
+
+
+def test_a_shorter_render_into_the_same_folder_leaves_no_stale_frames(tmp_path):
+    from usplat_dr.jobs.render_video import write_frames
+
+    folder = tmp_path / "out" / "frames"
+    write_frames(np.zeros((5, 4, 8, 3)), folder)
+    (tmp_path / "out" / ".frames.partial").mkdir()  # a killed render's leftovers
+    (tmp_path / "out" / ".frames.partial" / "0007.png").write_bytes(b"stale")
+    write_frames(np.full((2, 4, 8, 3), 1.0), folder)
+    assert sorted(p.name for p in folder.iterdir()) == ["0000.png", "0001.png"]
+    assert np.asarray(Image.open(folder / "0001.png")).min() == 255
+    assert not (tmp_path / "out" / ".frames.partial").exists()

@@ -10,6 +10,7 @@ Gaussians per frame (``UniqueSplat.predict``), in batches of ``chunk`` frames; w
 """
 
 import argparse
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -149,11 +150,27 @@ def run(args: argparse.Namespace) -> int:
         ply = write_ply(out / "gaussians_frame0000.ply", pred.gaussians[0])
         print(f"wrote {ply}: the Gaussians predicted for frame 0")
     frames = colour_and_depth(colors, depths)
-    for i, frame in enumerate(frames):
-        save_png(out / "frames" / f"{i:04d}.png", frame)
+    write_frames(frames, out / "frames")
     path = write_video(frames, out / "video")
     print(f"wrote {path} and {out / 'frames'} ({len(frames)} frames: colour | depth)")
     return 0
+
+
+def write_frames(frames: np.ndarray, folder: Path) -> None:
+    """``frames`` as ``folder/NNNN.png``, replacing the folder whole: written into a sibling
+    first and swapped in, so that a longer earlier render's frames never mix with these, and
+    a render killed half-way leaves the earlier frames as they were."""
+    partial = folder.with_name(f".{folder.name}.partial")
+    if partial.exists():  # what a killed render left
+        shutil.rmtree(partial)
+    for i, frame in enumerate(frames):
+        save_png(partial / f"{i:04d}.png", frame)
+    if folder.is_symlink() or folder.is_file():
+        raise ValueError(f"--out: {folder} is a link or a file, not a folder of frames: "
+                         f"choose another --out")
+    if folder.exists():
+        shutil.rmtree(folder)
+    partial.rename(folder)
 
 
 def colour_and_depth(colors: np.ndarray, depths: np.ndarray) -> np.ndarray:
