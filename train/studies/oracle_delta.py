@@ -528,7 +528,7 @@ def run_between(args, p: argparse.ArgumentParser) -> int:
     for s, example in enumerate(ds):
         if s == args.scenes:
             break
-        if example["scene"] in done:
+        if example["scene"] in done or s < args.skip_first:
             continue
         fits = fit_transfer(model, default_collate([example]), specs, args.rank, args.steps,
                             args.lr, args.seed + s, args.pixels)
