@@ -32,7 +32,7 @@ COMMANDS = {
     "export-ply": ("export_ply",
                    "the Gaussians predicted for one target view, as a standard 3DGS PLY"),
     "demo": ("demo", ("the main job: synthetic data, train (a) and (c), evaluate, write a "
-                      "report (about 15 minutes on 2 CPU cores)")),
+                      "report (4-10 minutes on 2 CPU cores)")),
     "bench": ("bench", ("speed against accuracy: train (or reuse) size presets x variants on "
                         "the demo's data, measure time per view, memory, Gaussians and "
                         "accuracy; CSV + chart in OUT/bench")),
