@@ -453,3 +453,29 @@ def test_the_viewer_in_a_real_browser_renders_and_follows_a_mouse_drag(truth, ch
                  "the readout of the other model")
     finally:
         viewer.stop()
+
+
+def test_a_websocket_from_another_page_is_refused(truth):
+    """A page elsewhere that the user visits could open ws://127.0.0.1:PORT and receive the
+    renders: only this viewer's own page (or a program that sends no Origin) may connect."""
+    import viser
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    viewer = view.start(own_args(truth, "--port", "0"))
+    try:
+        url = f"ws://127.0.0.1:{viewer.server.get_port()}"
+        protocol = [f"viser-v{viser.__version__}"]
+        with connect(url, subprotocols=protocol, open_timeout=20,
+                     additional_headers={"Origin": "http://evil.example"}) as ws, \
+                pytest.raises(ConnectionClosed) as closed:
+            while True:  # persistent scene messages may come first; then the close
+                ws.recv(timeout=20)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+        assert viewer.refused == ["http://evil.example"] and not viewer.history
+        with connect(url, subprotocols=protocol, open_timeout=20,
+                     additional_headers={"Origin": viewer.url}) as ws:
+            ws.recv(timeout=20)  # served: the scene's persistent messages arrive
+        assert viewer.refused == ["http://evil.example"]
+    finally:
+        viewer.stop()

@@ -19,6 +19,7 @@ the canvas' fields of view, whatever its pixel size.
 """
 
 import argparse
+import asyncio
 import logging
 import math
 import threading
@@ -354,6 +355,8 @@ class Viewer:
         self.lock = threading.Lock()
         self.queue = LatestOnly(self._render)
         self._set_scene(start_c2w, start_k)
+        self.refused: list[str] = []  # origins refused (``_check_origin``)
+        self.server._websock_server.on_client_connect(self._check_origin)
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
 
@@ -388,7 +391,32 @@ class Viewer:
                 position=position, thickness=2.0, thickness_units="screen",
                 color=(230, 120, 20))
 
+    def allowed_origins(self) -> set[str]:
+        """The page origins whose websockets may connect: this server's own page (as
+        ``url`` names it, and as localhost). A web page elsewhere that the user visits could
+        otherwise open ws://127.0.0.1:PORT and receive the renders."""
+        port = self.server.get_port()
+        host = self.server.get_host()
+        hosts = {"127.0.0.1", "localhost", "[::1]"} | ({host} if host not in
+                                                        ("0.0.0.0", "::", "") else set())
+        return {f"http://{h}:{port}" for h in hosts}
+
+    def _check_origin(self, connection) -> None:
+        """Called by viser's websocket server (1.x; its ``on_client_connect`` at the socket
+        level, in its event loop) as each websocket opens, before the client is served: a
+        page of another origin is closed with 1008. A browser always sends its page's
+        origin; a local program may send none."""
+        socket = self.server._websock_server._live_connections.get(connection.client_id)
+        origin = socket.request.headers.get("Origin") if socket is not None else None
+        if origin is not None and origin not in self.allowed_origins():
+            log.warning("refused a viewer connection from the page %r (not this viewer's "
+                        "page)", origin)
+            self.refused.append(origin)
+            asyncio.ensure_future(socket.close(1008, "origin not allowed"))
+
     def _connect(self, client) -> None:
+        if self.server._websock_server._live_connections.get(client.client_id) is None:
+            return  # closed (another origin) before viser finished serving it
         labels = self.scene.labels
         gui = {"readout": client.gui.add_markdown("rendering ...")}
         if len(labels) > 1:
