@@ -23,6 +23,7 @@ def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene,
                  "--cameras", sparse, "--frames", "4", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "gaussians_frame0000.ply" in printed and "4 frames" in printed
+    assert "near/far " in printed and "(from the sparse points; --near/--far to set it)" in printed
     frames = sorted((out / "frames").glob("*.png"))
     assert len(frames) == 4
     assert len(list(out.glob("video.*"))) == 1

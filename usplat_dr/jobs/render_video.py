@@ -116,6 +116,10 @@ def own_views(args: argparse.Namespace) -> tuple[UserViews, float, float]:
     if near is None:
         raise ValueError(f"--cameras {args.cameras} has no sparse points to set near/far from: "
                          f"give --near and --far (scene units)")
+    # the range matters (2-3 dB against the one a scene was trained with, docs/data.md): say it
+    print(f"near/far {near:.4g} / {far:.4g} ("
+          + ("--near/--far" if args.near is not None else
+             "from the sparse points; --near/--far to set it") + ")")
     return views, near, far
 
 
