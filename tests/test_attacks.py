@@ -735,6 +735,27 @@ def test_weight_files_that_are_not_torch_files_name_themselves(tmp_path):
         COUNTS[(SKIPS, "error naming the file")] += 1
 
 
+@pytest.mark.parametrize("argv, needle", [
+    (["train", "train.steps=1000000000000000000000000000000"], "must be >= 1 and <= 1,000,000"),
+    (["train", "train.steps=10**30"], "expected int"),
+    (["train", "output_dir="], "must name a folder"),
+    (["train", "dataset.image_shape=[[[[1]]]]"], "expected tuple[int, int]"),
+    (["eval", "--checkpoint", "tiny_full", "--data", ".", "--index", "standard"],
+     "--index takes SPLIT=PATH"),
+    (["eval", "--checkpoint", "tiny_full", "--data", ".", "--index", "=x"],
+     "--index takes SPLIT=PATH"),
+])
+def test_settings_out_of_range_end_in_one_line(tmp_path, capsys, monkeypatch, argv, needle):
+    from usplat_dr.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    with deadline(HANG_S):
+        code = main(["-q", *argv])
+    err = [x for x in capsys.readouterr().err.splitlines() if "error:" in x]
+    assert code == 2 and len(err) == 1 and needle in err[0], (code, err)
+    COUNTS[(BOUNDS, "error naming the setting")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

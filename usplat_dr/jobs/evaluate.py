@@ -69,7 +69,13 @@ def _onednn_has_bfloat16() -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    indices = dict(item.split("=", 1) for item in args.index) if args.index else None
+    indices = None
+    if args.index:
+        bad = [i for i in args.index if "=" not in i or not all(i.split("=", 1))]
+        if bad:
+            raise ValueError(f"--index takes SPLIT=PATH (e.g. standard=assets/"
+                             f"evaluation_index_re10k.json), got {bad[0]!r}")
+        indices = dict(item.split("=", 1) for item in args.index)
     if indices is None:
         indices = synthetic_indices(args.data, args.splits)
         if not indices:

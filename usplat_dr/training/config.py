@@ -120,7 +120,9 @@ def _positive_finite(x: float) -> bool:
 
 #: The ranges ``RootCfg.load`` checks: dotted key -> (test, what the message says).
 RANGES = {
-    "train.steps": (lambda v: v >= 1, "must be >= 1"),
+    # (10^9 steps is years of any machine: a larger count is a typo, e.g. 10**30)
+    "train.steps": (lambda v: 1 <= v <= 10**9, "must be >= 1 and <= 1,000,000,000"),
+    "output_dir": (lambda v: bool(str(v).strip()), "must name a folder (it is empty)"),
     "train.checkpoint_every": (lambda v: v >= 1, "must be >= 1"),
     "train.keep_every": (lambda v: v >= 0, "must be >= 0 (0: keep only last.ckpt)"),
     "train.validate_every": (lambda v: v >= 1, "must be >= 1"),
