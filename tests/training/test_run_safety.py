@@ -265,6 +265,24 @@ def test_a_damaged_checkpoint_names_the_file_and_the_fix(data, run, capsys, dama
     assert "last.ckpt" in err and "move it away" in err
 
 
+def test_a_damaged_random_state_names_the_file_and_the_fix(data, run, capsys):
+    path = run / "checkpoints" / "last.ckpt"
+    state = torch.load(path, weights_only=True)
+    state["rng"]["torch"] = torch.zeros(3, dtype=torch.uint8)  # 3 bytes, not a generator's
+    torch.save(state, path)
+    err = one_line_error(capsys, main(usplat_train("--resume", *overrides(data, run, RUN_STEPS))))
+    assert "last.ckpt holds a damaged random state" in err and "move it away" in err
+
+
+def test_a_damaged_metrics_file_is_kept_aside_and_the_run_goes_on(data, run, capsys):
+    (run / "metrics.csv").write_bytes(b"\x00\xff not a csv,,,\n1,2\n")
+    assert main(usplat_train("--resume", *overrides(data, run, RUN_STEPS))) == 0, \
+        capsys.readouterr()
+    assert (run / "metrics.csv.damaged").read_bytes().startswith(b"\x00\xff")
+    assert [r["step"] for r in rows(run / "metrics.csv")] == [str(s) for s in
+                                                                range(3, RUN_STEPS + 1)]
+
+
 def test_a_training_set_that_shrank_under_a_resumed_run(run, tmp_path, capsys):
     # the checkpoint took 2 batches of epoch 0; the set now has 1 scene (1 batch an epoch)
     smaller = write_data(tmp_path / "smaller", scenes=1)

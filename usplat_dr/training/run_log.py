@@ -13,6 +13,8 @@ chart) summarise it. Nothing is lost: ``metrics.csv`` is rewritten atomically wh
 import contextlib
 import csv
 import errno
+import logging
+import math
 import os
 import time
 from collections.abc import Iterator, Sequence
@@ -23,6 +25,8 @@ from tqdm import tqdm
 
 from usplat_dr.io import atomic_open
 from usplat_dr.model.uniquesplat import VARIANTS
+
+log = logging.getLogger(__name__)
 
 #: The file of a run folder that ``RunLog`` writes and ``read_metrics`` reads.
 METRICS_FILE = "metrics.csv"
@@ -92,9 +96,19 @@ class MetricsLog:
         row cut short (a power cut mid-append) is dropped."""
         if not path.exists():
             return []
-        rows = _read_rows(path)
+        try:
+            rows = _read_rows(path)
+        except (UnicodeDecodeError, csv.Error) as e:
+            # not this project's text (a damaged disk, another program): kept aside, and the
+            # run's log starts again rather than the run failing on its own log
+            aside = path.with_name(path.name + ".damaged")
+            os.replace(path, aside)
+            log.warning("%s is damaged (%s): moved to %s; the log starts again from this step",
+                        path, type(e).__name__, aside)
+            return []
         return [r for r in rows if None not in r and None not in r.values()
-                and (r.get("step") or "").isdigit() and int(r["step"]) <= step]
+                and (r.get("step") or "").isdigit() and int(r["step"]) <= step
+                and _number(r.get("cpu_s", "0") or "0")]
 
     def write(self, row: dict) -> None:
         with disk_full_names(self.path):
@@ -181,6 +195,14 @@ class RunLog:
 
 
 # ---- reading ----------------------------------------------------------------------------------
+
+def _number(text: str) -> bool:
+    """Whether ``text`` is a finite number (a kept row's ``cpu_s`` is added up)."""
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
+
 
 def _read_rows(path: Path) -> list[dict]:
     with open(path, newline="") as f:

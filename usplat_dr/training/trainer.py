@@ -549,7 +549,12 @@ class Trainer:
         except (KeyError, TypeError) as e:
             raise ConfigError(f"--resume: {path} holds a damaged data position ({e!r}): move "
                               f"it away to start again from step 0") from None
-        set_rng_state(mine["rng"])
+        try:
+            set_rng_state(mine["rng"])
+        except (RuntimeError, ValueError, KeyError, TypeError) as e:
+            detail = " ".join(str(e).split())[:200]
+            raise ConfigError(f"--resume: {path} holds a damaged random state ({detail}): move "
+                              f"it away to start again from step 0") from None
 
     # -- one step --
     def loss(self, out, batch: dict) -> tuple[torch.Tensor, dict]:
