@@ -756,6 +756,24 @@ def test_settings_out_of_range_end_in_one_line(tmp_path, capsys, monkeypatch, ar
     COUNTS[(BOUNDS, "error naming the setting")] += 1
 
 
+@pytest.mark.parametrize("kind", ["float8", "sparse", "meta", "quantised"])
+def test_weights_of_the_right_shape_but_no_usable_tensor_name_themselves(tmp_path, kind):
+    from usplat_dr.training.checkpoints import CHECKPOINTS, load
+
+    state = torch.load(CHECKPOINTS / "tiny_baseline.pt", weights_only=True)
+    name = next(k for k, v in state["model"].items() if v.is_floating_point())
+    v = state["model"][name].float()
+    state["model"][name] = {"float8": lambda: v.to(torch.float8_e4m3fn),
+                            "sparse": v.to_sparse, "meta": lambda: v.to("meta"),
+                            "quantised": lambda: torch.quantize_per_tensor(
+                                v, 0.1, 0, torch.qint8)}[kind]()
+    path = tmp_path / f"{kind}.pt"
+    torch.save(state, path)
+    with deadline(HANG_S), pytest.raises(ValueError, match=name.replace(".", r"\.")):
+        load(path)
+    COUNTS[(SKIPS, "error naming the file")] += 1
+
+
 def test_zz_the_counts(capsys):
     """Prints the outcomes per class (run with ``-s`` to see them)."""
     assert not any(outcome in ("crash", "hang") for _, outcome in COUNTS)

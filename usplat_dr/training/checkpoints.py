@@ -101,6 +101,12 @@ def _quiet_resnet():
         resnet_log.setLevel(level)
 
 
+#: The dtypes a checkpoint's tensors may have (float16 shipped, float32 trained; integer
+#: buffers such as BatchNorm's count).
+LOADABLE_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.int64,
+                   torch.int32, torch.uint8, torch.bool)
+
+
 def _model_state(path: Path, state: dict) -> tuple[UniqueSplatCfg, dict[str, torch.Tensor]]:
     """The model config and weights of a loaded usplat checkpoint, checked against each other
     without building the network: a ``ValueError`` naming ``path`` unless ``model_config``
@@ -130,6 +136,13 @@ def _model_state(path: Path, state: dict) -> tuple[UniqueSplatCfg, dict[str, tor
                          f"({type(e).__name__}: {str(e)[:300]})") from None
     check_state_dict(expected, sd, what=f"checkpoint {path}")
     for name, value in sd.items():
+        # dense CPU tensors of the dtypes torch computes with: a sparse, meta, quantised or
+        # float8 tensor of the right shape would fail later in any op, with torch's message
+        if (value.layout != torch.strided or value.device.type != "cpu" or value.is_quantized
+                or value.dtype not in LOADABLE_DTYPES):
+            raise ValueError(f"{path}: {name} is a {value.layout} {value.dtype} tensor on "
+                             f"{value.device.type}: a checkpoint holds dense float or integer "
+                             f"tensors (a damaged or foreign file)")
         if value.is_complex() or value.is_floating_point() != expected[name].is_floating_point():
             raise ValueError(f"{path}: {name} is {value.dtype}, the network's is "
                              f"{expected[name].dtype}")
