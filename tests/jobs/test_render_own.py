@@ -68,11 +68,12 @@ def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp
                          sorted((tmp_path / f"c{chunk}" / "frames").glob("*.png"))]
     assert len(frames[2]) == len(user_scene.names)
     # each target is predicted on its own (its own Delta W in (c)): chunks change nothing but
-    # the float rounding of the batched convolutions, which flips one 8-bit level of the
-    # depth half on 1 pixel of 12,288 (measured); the colour half is equal
+    # the float rounding of convolutions batched over 2 or 6 targets (oneDNN may pick other
+    # kernels for other batch sizes), which flips single 8-bit levels: measured 1 pixel of
+    # 12,288 in one run; allowed: 1 level, on at most 1% of the pixels of a frame
     for a, b in zip(frames[2], frames[8]):
-        assert np.array_equal(a[:, :64], b[:, :64])
-        assert np.abs(a[:, 64:].astype(int) - b[:, 64:]).max() <= 1
+        diff = np.abs(a.astype(int) - b)
+        assert diff.max() <= 1 and (diff > 0).mean() <= 0.01
     monkeypatch.setattr(render_video, "MAX_PATH_CAMERAS", 5)
     capsys.readouterr()
     assert main([*args, "--out", str(tmp_path / "long")]) == 2
