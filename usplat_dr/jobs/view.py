@@ -20,6 +20,7 @@ the canvas' fields of view, whatever its pixel size.
 
 import argparse
 import asyncio
+import ipaddress
 import logging
 import math
 import threading
@@ -391,15 +392,35 @@ class Viewer:
                 position=position, thickness=2.0, thickness_units="screen",
                 color=(230, 120, 20))
 
-    def allowed_origins(self) -> set[str]:
-        """The page origins whose websockets may connect: this server's own page (as
-        ``url`` names it, and as localhost). A web page elsewhere that the user visits could
-        otherwise open ws://127.0.0.1:PORT and receive the renders."""
-        port = self.server.get_port()
-        host = self.server.get_host()
-        hosts = {"127.0.0.1", "localhost", "[::1]"} | ({host} if host not in
-                                                        ("0.0.0.0", "::", "") else set())
-        return {f"http://{h}:{port}" for h in hosts}
+    @staticmethod
+    def origin_allowed(origin: str | None, host: str | None) -> bool:
+        """Whether a websocket whose page is ``origin`` (its ``Origin`` header) may connect
+        to this viewer reached as ``host`` (its ``Host`` header): the same origin (the page
+        this server served, however the user reached it: 127.0.0.1, localhost, or the
+        machine's address with ``--host 0.0.0.0``), reached by an IP address or localhost (a
+        domain name could be an attacker's, rebound to 127.0.0.1). No Origin: a program, not
+        a page; allowed.
+
+        Examples:
+            >>> Viewer.origin_allowed("http://127.0.0.1:8080", "127.0.0.1:8080")
+            True
+            >>> Viewer.origin_allowed("https://evil.example", "127.0.0.1:8080")
+            False
+            >>> Viewer.origin_allowed("http://evil.example:8080", "evil.example:8080")
+            False
+        """
+        if origin is None:
+            return True
+        if host is None or origin != f"http://{host}":
+            return False
+        name = host.rsplit(":", 1)[0].strip("[]")
+        if name == "localhost":
+            return True
+        try:
+            ipaddress.ip_address(name)
+        except ValueError:
+            return False
+        return True
 
     def _check_origin(self, connection) -> None:
         """Called by viser's websocket server (1.x; its ``on_client_connect`` at the socket
@@ -407,8 +428,10 @@ class Viewer:
         page of another origin is closed with 1008. A browser always sends its page's
         origin; a local program may send none."""
         socket = self.server._websock_server._live_connections.get(connection.client_id)
-        origin = socket.request.headers.get("Origin") if socket is not None else None
-        if origin is not None and origin not in self.allowed_origins():
+        if socket is None:
+            return
+        origin, host = socket.request.headers.get("Origin"), socket.request.headers.get("Host")
+        if not self.origin_allowed(origin, host):
             log.warning("refused a viewer connection from the page %r (not this viewer's "
                         "page)", origin)
             self.refused.append(origin)
