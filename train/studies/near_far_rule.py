@@ -26,6 +26,7 @@ import torch
 import usplat_dr  # noqa: F401  (libLLVM first)
 from usplat_dr.data.chunks import cameras_to_matrices, read_chunk, stage_chunks
 from usplat_dr.data.dataset import dataset_from_section
+from usplat_dr.data.importers import visible_depths
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.evaluation.verdict import t_interval
@@ -74,15 +75,7 @@ def sfm_points(scene: dict, count: int, rng: np.random.Generator) -> np.ndarray:
 def rule_range(points: np.ndarray, c2w: np.ndarray, k: np.ndarray, rule) -> tuple:
     """``rule`` on the depths of the points each camera sees, over all cameras (the
     importer's selection, ``near_far_from_points``)."""
-    depths = []
-    for m, kk in zip(c2w, k):
-        cam = (points - m[:3, 3]) @ m[:3, :3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = kk[0, 0] * cam[:, 0] / z + kk[0, 2]
-            v = kk[1, 1] * cam[:, 1] / z + kk[1, 2]
-        depths.append(z[(z > 0) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)])
-    return rule(np.concatenate(depths))
+    return rule(visible_depths(points, c2w, k))
 
 
 def main(argv=None) -> int:

@@ -464,6 +464,21 @@ DEPTH_PERCENTILES = (1.0, 99.0)
 NEAR_FAR_MARGIN = (0.8, 1.2)
 
 
+def visible_depths(points: np.ndarray, extrinsics: np.ndarray, intrinsics: np.ndarray
+                   ) -> np.ndarray:
+    """The camera-space depths of the points each camera sees (in front, inside the image),
+    over all cameras, concatenated."""
+    depths = []
+    for c2w, k in zip(extrinsics, intrinsics):
+        cam = (points - c2w[:3, 3]) @ c2w[:3, :3]  # [N, 3] = R^T (p - c), camera space
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = k[0, 0] * cam[:, 0] / z + k[0, 2]
+            v = k[1, 1] * cam[:, 1] / z + k[1, 2]
+        depths.append(z[(z > 0) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)])
+    return np.concatenate(depths)
+
+
 def near_far_from_points(points: np.ndarray, extrinsics: np.ndarray,
                          intrinsics: np.ndarray) -> tuple[float, float]:
     """(near, far): the 1st and 99th percentile of the camera-space depths of the points each
@@ -475,15 +490,7 @@ def near_far_from_points(points: np.ndarray, extrinsics: np.ndarray,
         ...                                                        [0, 0, 1.]]]))
         (1.616, 4.776)
     """
-    depths = []
-    for c2w, k in zip(extrinsics, intrinsics):
-        cam = (points - c2w[:3, 3]) @ c2w[:3, :3]  # [N, 3] = R^T (p - c), camera space
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = k[0, 0] * cam[:, 0] / z + k[0, 2]
-            v = k[1, 1] * cam[:, 1] / z + k[1, 2]
-        depths.append(z[(z > 0) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)])
-    depths = np.concatenate(depths)
+    depths = visible_depths(points, extrinsics, intrinsics)
     if depths.size == 0:
         raise ValueError("no sparse point lies in front of a camera: give --near and --far")
     lo, hi = np.percentile(depths, DEPTH_PERCENTILES)

@@ -208,7 +208,7 @@ PATH_CHUNK = 8
 
 def predict_own_views(model, args: argparse.Namespace) -> Prediction:
     """``--images`` and ``--cameras``: the model's ``Prediction`` for ``--path``, predicted
-    ``PATH_CHUNK`` targets at a time (``gaussians`` holds the first target's only: what
+    ``PATH_CHUNK`` targets at a time, ``gaussians`` holding the first target's only (what
     ``run`` writes as a PLY)."""
     views, near, far = own_views(args)
     te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames,
@@ -217,14 +217,10 @@ def predict_own_views(model, args: argparse.Namespace) -> Prediction:
         raise ValueError(f"--path {args.path} holds {len(te):,} cameras (at most "
                          f"{MAX_PATH_CAMERAS:,} frames): keep every k-th camera, or split the "
                          f"file and render the parts")
-    parts = [model.predict(views.images, intrinsics=views.intrinsics,
-                           extrinsics=views.extrinsics, target_intrinsics=tk[i:i + PATH_CHUNK],
-                           target_extrinsics=te[i:i + PATH_CHUNK], near=near, far=far,
-                           budget=args.gaussians, rank_by=args.rank_by)
-             for i in range(0, len(te), PATH_CHUNK)]
-    return Prediction(gaussians=parts[0].gaussians[:1],
-                      **{k: torch.cat([getattr(p, k) for p in parts])
-                         for k in ("color", "alpha", "depth")})
+    return model.predict(views.images, intrinsics=views.intrinsics,
+                         extrinsics=views.extrinsics, target_intrinsics=tk,
+                         target_extrinsics=te, near=near, far=far, chunk=PATH_CHUNK,
+                         budget=args.gaussians, rank_by=args.rank_by, all_gaussians=False)
 
 
 def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,

@@ -98,11 +98,13 @@ def _check_normalised(name: str, k: Tensor) -> None:
 @torch.no_grad()
 def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
                   target_extrinsics, near=DEFAULT_NEAR, far=DEFAULT_FAR,
-                  chunk: int = 8, budget=None, rank_by: str | None = None) -> Prediction:
+                  chunk: int = 8, budget=None, rank_by: str | None = None,
+                  all_gaussians: bool = True) -> Prediction:
     """Predict and render ``target_*`` cameras from the context ``images`` with ``model`` (a
     ``UniqueSplat``), in its evaluation mode, ``chunk`` targets per forward pass, keeping
     ``budget`` Gaussians per target ranked by ``rank_by`` (``None``: all). See
-    ``UniqueSplat.predict``."""
+    ``UniqueSplat.predict``. ``all_gaussians=False``: ``gaussians`` holds the first target's
+    set only, so that a long camera path holds the Gaussians of ``chunk`` targets at a time."""
     if not isinstance(chunk, int) or chunk < 1:
         raise ValueError(f"chunk must be an int >= 1, got {chunk!r}")
     device = next(model.parameters()).device
@@ -138,7 +140,8 @@ def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
                         target_near=near_t.min().expand(1, n).to(device),
                         target_far=far_t.max().expand(1, n).to(device), budget=budget,
                         rank_by=rank_by)
-            gaussians += [out.target(0, i) for i in range(n)]
+            if all_gaussians or not gaussians:
+                gaussians += [out.target(0, i) for i in range(n if all_gaussians else 1)]
             colors.append(out.color[0].clamp(0, 1))
             alphas.append(out.alpha[0])
             depths.append(out.depth[0] / out.alpha[0].clamp(min=1e-3))

@@ -658,7 +658,7 @@ class UniqueSplat(nn.Module):
     def predict(self, images, *, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
                 near=DEFAULT_NEAR, far=DEFAULT_FAR, chunk: int = 8,
                 budget: float | int | None = None,  # noqa: PYI041 (beartype: int is no float)
-                rank_by: str | None = None) -> Prediction:
+                rank_by: str | None = None, all_gaussians: bool = True) -> Prediction:
         """Novel views from a user's own images: the Gaussians, colour and depth of each
         target camera (a ``Prediction``), predicted in evaluation mode without gradients.
 
@@ -670,11 +670,14 @@ class UniqueSplat(nn.Module):
         range in scene units (a number, or one per context view; the default is MVSplat's
         RE10K range); ``chunk`` targets per forward pass. Cameras are keyword-only.
         ``budget``: keep K Gaussians per target (a count, or a fraction in (0, 1]) ranked by
-        ``rank_by``, as in ``forward``; each ``gaussians[n]`` then holds K."""
+        ``rank_by``, as in ``forward``; each ``gaussians[n]`` then holds K.
+        ``all_gaussians=False``: ``gaussians`` holds the first target's only (a long camera
+        path then holds ``chunk`` targets' Gaussians at a time)."""
         return predict_views(self, images, intrinsics=intrinsics, extrinsics=extrinsics,
                              target_intrinsics=target_intrinsics,
                              target_extrinsics=target_extrinsics, near=near, far=far,
-                             chunk=chunk, budget=budget, rank_by=rank_by)
+                             chunk=chunk, budget=budget, rank_by=rank_by,
+                             all_gaussians=all_gaussians)
 
     # ---- reporting ----------------------------------------------------------------------
 
