@@ -254,3 +254,12 @@ def test_docs_rasteriser_snippets_run(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for code in blocks:
         exec(compile(code, "rasteriser.md", "exec"), {})  # noqa: S102 (the docs' own code)
+    # mi.util.write_bitmap writes asynchronously and resolves its relative name when the task
+    # runs: wait for it here, or it lands in whatever folder the suite is in by then (a stray
+    # gaussians.png in the repository)
+    import time
+
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "gaussians.png").is_file() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (tmp_path / "gaussians.png").is_file()
