@@ -111,6 +111,8 @@ def main(argv=None) -> int:
              "float16_psnr_change_db": round(diff, 4),
              "provenance": state.get("provenance", {}),
              "metrics": {"eval_data": args.eval_data, "splits": shipped}}
+    if state.get("depth_range") is not None:  # render/view warn outside it
+        entry["depth_range"] = state["depth_range"]
     if args.base:
         entry["base"] = args.base
     if args.budgets:

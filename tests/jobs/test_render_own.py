@@ -52,6 +52,23 @@ def test_a_transforms_json_with_its_cameras_as_the_path(user_scene, tmp_path):
     assert len(list((out / "frames").glob("*.png"))) == len(user_scene.names)  # every camera
 
 
+def test_a_range_far_outside_the_training_range_is_warned_about(user_scene, tmp_path, caplog):
+    images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (0, 2)]
+    cameras = str(user_scene.root / "transforms.json")
+
+    def render(near: str, far: str) -> list[str]:
+        caplog.clear()
+        assert main(["-q", "render", "--checkpoint", "tiny_baseline", "--images", *images,
+                     "--cameras", cameras, "--near", near, "--far", far, "--frames", "2",
+                     "--out", str(tmp_path / "out")]) == 0
+        return [r.getMessage() for r in caplog.records if "training range" in r.getMessage()]
+
+    assert render("2", "7") == []  # the scene's own range, inside the shipped models' range
+    # the same scene in millimetres: the shipped models trained on near 0.2-2.1, far 4.5-100
+    (warning,) = render("2000", "7000")
+    assert "near/far 2000 / 7000" in warning and "near 0.2-2.125, far 4.525-100" in warning
+
+
 def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp_path,
                                                                   monkeypatch, capsys):
     from usplat_dr.jobs import render_video

@@ -15,14 +15,17 @@ from pathlib import Path
 import pytest
 import torch
 
+from usplat_dr.data.synth.scenes import KINDS, make_spec
 from usplat_dr.model import UniqueSplat
 from usplat_dr.training.checkpoints import (
     BASE,
     BUDGETED,
     SHIPPED,
+    depth_range_warning,
     load_model,
     registered_verdict,
     shipped_checkpoints,
+    training_depth_range,
 )
 
 ROOT = Path(__file__).parents[2] / "checkpoints"
@@ -59,6 +62,20 @@ def test_manifest_lists_the_required_models_within_budget():
         elif e.get("init_from"):
             # a staged (a): its ancestry starts at a shipped checkpoint
             assert Path(e["init_from"]).name in files, e["name"]
+
+
+def test_the_shipped_depth_range_is_that_of_the_scene_kinds_they_trained_on():
+    # every shipped model trained on `usplat synth` sets of the three kinds; the generator's
+    # own near_far records (independent of the manifest) give the range
+    ranges = [make_spec(kind, seed, 24)["near_far"] for kind in KINDS for seed in (0, 1)]
+    expected = [min(r[0] for r in ranges), max(r[0] for r in ranges),
+                min(r[1] for r in ranges), max(r[1] for r in ranges)]
+    for name in shipped_checkpoints():
+        assert training_depth_range(name) == expected, name
+    # a room in the synthetic kinds' units passes; the same room in millimetres does not
+    assert depth_range_warning(0.2, 20.0, expected) is None
+    assert "far outside" in depth_range_warning(200.0, 20000.0, expected)
+    assert depth_range_warning(1e-3, 1e9, None) is None  # nothing recorded: nothing to say
 
 
 def test_the_registry_names_shipped_files(tmp_path):

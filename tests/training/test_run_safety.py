@@ -258,11 +258,21 @@ def drop_optimizer(path: Path) -> None:
     torch.save(state, path)
 
 
-@pytest.mark.parametrize("damage", [truncate, drop_optimizer])
+def float8_weight(path: Path) -> None:
+    # a weight of the right shape in a dtype load_state_dict would cast silently
+    state = torch.load(path, weights_only=True)
+    name = next(k for k, v in state["model"].items() if v.is_floating_point())
+    state["model"][name] = state["model"][name].to(torch.float8_e4m3fn)
+    torch.save(state, path)
+
+
+@pytest.mark.parametrize("damage", [truncate, drop_optimizer, float8_weight])
 def test_a_damaged_checkpoint_names_the_file_and_the_fix(data, run, capsys, damage):
     damage(run / "checkpoints" / "last.ckpt")
     err = one_line_error(capsys, main(usplat_train("--resume", *overrides(data, run, RUN_STEPS))))
     assert "last.ckpt" in err and "move it away" in err
+    if damage is float8_weight:
+        assert "float8_e4m3fn" in err
 
 
 def test_a_damaged_random_state_names_the_file_and_the_fix(data, run, capsys):

@@ -18,6 +18,7 @@ from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.lpips import LPIPSWeightsMissing
 from usplat_dr.training import Trainer, TrainingStopped
+from usplat_dr.training.checkpoints import export_weights, training_depth_range
 from usplat_dr.training.config import RootCfg
 
 CONFIGS = Path(__file__).parents[2] / "usplat_dr" / "configs"
@@ -159,6 +160,27 @@ def test_resume_continues_exactly(synth_root, tmp_path):
     a_rows, b_rows = losses("a"), losses("b")
     assert [s for s, _ in b_rows] == [1, 2, 3, 4, 5, 6]
     assert a_rows == b_rows
+
+
+def test_the_depth_range_trained_on_is_recorded_resumed_and_shipped(synth_root, tmp_path):
+    # the scenes' own near_far records (read from the chunk files, not through the trainer)
+    scenes = [s for f in sorted(synth_root.glob("train/*.torch"))
+              for s in torch.load(f, weights_only=True)]
+    near = [float(s["near_far"][0]) for s in scenes]
+    far = [float(s["near_far"][1]) for s in scenes]
+    opts = ("train.checkpoint_every=2", "threads=1")
+    first = Trainer(config(synth_root, tmp_path / "run", 2, *opts))
+    first.fit()
+    recorded = first.depth_range
+    # what the batches drew lies within the set's scenes, as float32 values of them
+    assert min(near) <= recorded[0] <= recorded[1] <= max(near), (recorded, near)
+    assert min(far) <= recorded[2] <= recorded[3] <= max(far), (recorded, far)
+    checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert torch.load(checkpoint, weights_only=True)["depth_range"] == recorded
+    resumed = Trainer(config(synth_root, tmp_path / "run", 2, *opts))
+    assert resumed.resume() and resumed.depth_range == recorded
+    shipped = export_weights(checkpoint, tmp_path / "shipped.pt")
+    assert training_depth_range(shipped) == recorded
 
 
 def test_signal_saves_and_stops(synth_root, tmp_path):

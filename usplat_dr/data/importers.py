@@ -31,6 +31,7 @@ import logging
 import math
 import os
 import re
+import shutil
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,7 @@ from PIL import Image
 
 from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras, metadata_folder
 from usplat_dr.io import write_json
+from usplat_dr.io.atomic import remove_temporaries_of
 from usplat_dr.io.user_files import check_resize, inside, read_bytes, read_image
 
 log = logging.getLogger(__name__)
@@ -579,6 +581,12 @@ def import_scene(scene: ImportedScene, out: str | os.PathLike, stage: str = "tes
     if any((out / stage).glob("*.torch")) or (out / stage / "index.json").exists():
         raise ValueError(f"{out / stage} already holds a dataset (index.json, chunks): pass a "
                          "new --out")
+    if (out / stage).is_dir() and any((out / stage).iterdir()):
+        raise ValueError(f"{out / stage} is not empty (the import writes the stage whole): "
+                         f"pass a new --out, or empty it")
+    if (out / stage).exists() and not (out / stage).is_dir():
+        raise ValueError(f"{out / stage} is a file, where the import writes the {stage} stage: "
+                         f"pass a new --out")
     views = len(scene.image_paths)
     missing = [p for p in scene.image_paths if not p.is_file()]
     if missing:
@@ -611,12 +619,21 @@ def import_scene(scene: ImportedScene, out: str | os.PathLike, stage: str = "tes
               "images": [encode_image(im, fmt) for im in images],
               "near_far": torch.tensor([near, far], dtype=torch.float32),
               "names": [p.name for p in scene.image_paths]}
-    with ChunkWriter(out, stage) as writer:
+    # All or nothing: the stage is written into a hidden folder and moved into place last,
+    # after its evaluation index, so that an import killed at any point leaves either no stage
+    # (a rerun starts afresh, removing what the killed one left) or the whole of it.
+    partial = out / f".{stage}.partial"
+    if partial.exists():
+        shutil.rmtree(partial)
+    with ChunkWriter(partial, stage) as writer:
         writer.add(record)
     # beside the stage's own metadata (the test stage's at the root): a train-stage import
     # into the root of a test one keeps the test stage's index
     index = metadata_folder(out, stage) / "evaluation_index_standard.json"
+    remove_temporaries_of(index)  # what a killed import's write left
     write_json(index, {key: entry})
+    os.replace(partial / stage, out / stage)  # an empty out/stage is replaced too
+    partial.rmdir()
     h, w = images[0].shape[:2]
     return {"key": key, "views": views, "image_shape": [h, w], "near_far": [near, far],
             "stage_dir": str(out / stage), "evaluation_index": str(index),

@@ -3,6 +3,7 @@
 import contextlib
 import json
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Iterator
@@ -40,6 +41,34 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+#: The temporary files of ``atomic_open``: ``tempfile.mkstemp``'s ``.<name>.<8 random
+#: characters>.tmp`` beside the target, left behind by a killed write.
+ATOMIC_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def remove_temporaries_of(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files that killed ``atomic_open`` writes of ``path`` left beside
+    it; returns them. (Only for a file no other process is writing.)
+
+    Examples:
+        >>> import tempfile, pathlib
+        >>> folder = pathlib.Path(tempfile.mkdtemp())
+        >>> _ = (folder / ".a.json.k3j_9x0q.tmp").write_text("{")
+        >>> [p.name for p in remove_temporaries_of(folder / "a.json")]
+        ['.a.json.k3j_9x0q.tmp']
+    """
+    path = Path(path)
+    prefix = f".{path.name}."
+    if not path.parent.is_dir():
+        return []
+    found = [p for p in path.parent.iterdir()
+             if p.name.startswith(prefix) and ATOMIC_TEMPORARY.fullmatch(p.name)
+             and len(p.name) == len(prefix) + len("12345678.tmp") and p.is_file()]
+    for p in found:
+        p.unlink(missing_ok=True)
+    return found
 
 
 def refuse_special(path: Path) -> None:

@@ -10,6 +10,7 @@ Gaussians per frame (``UniqueSplat.predict``), in batches of ``chunk`` frames; w
 """
 
 import argparse
+import logging
 import shutil
 from pathlib import Path
 
@@ -36,7 +37,14 @@ from usplat_dr.jobs.arguments import (
 )
 from usplat_dr.model.ply import write_ply
 from usplat_dr.model.predict import Prediction
-from usplat_dr.training.checkpoints import load, training_image_shape
+from usplat_dr.training.checkpoints import (
+    depth_range_warning,
+    load,
+    training_depth_range,
+    training_image_shape,
+)
+
+log = logging.getLogger(__name__)
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
 
@@ -120,6 +128,10 @@ def own_views(args: argparse.Namespace) -> tuple[UserViews, float, float]:
     print(f"near/far {near:.4g} / {far:.4g} ("
           + ("--near/--far" if args.near is not None else
              "from the sparse points; --near/--far to set it") + ")")
+    warning = depth_range_warning(near, far, training_depth_range(args.checkpoint,
+                                                                  args.trust_checkpoint))
+    if warning:
+        log.warning(warning)
     return views, near, far
 
 
@@ -163,18 +175,23 @@ def run(args: argparse.Namespace) -> int:
 def write_frames(frames: np.ndarray, folder: Path) -> None:
     """``frames`` as ``folder/NNNN.png``, replacing the folder whole: written into a sibling
     first and swapped in, so that a longer earlier render's frames never mix with these, and
-    a render killed half-way leaves the earlier frames as they were."""
+    a render killed before the swap leaves the earlier frames as they were (killed between
+    the swap's two renames, no frames folder; the next render removes what is left)."""
     partial = folder.with_name(f".{folder.name}.partial")
-    if partial.exists():  # what a killed render left
-        shutil.rmtree(partial)
+    earlier = folder.with_name(f".{folder.name}.earlier")
+    for left in (partial, earlier):  # what a killed render left
+        if left.exists():
+            shutil.rmtree(left)
     for i, frame in enumerate(frames):
         save_png(partial / f"{i:04d}.png", frame)
     if folder.is_symlink() or folder.is_file():
         raise ValueError(f"--out: {folder} is a link or a file, not a folder of frames: "
                          f"choose another --out")
-    if folder.exists():
-        shutil.rmtree(folder)
+    if folder.exists():  # moved aside, not deleted, until the new frames are in place
+        folder.rename(earlier)
     partial.rename(folder)
+    if earlier.exists():
+        shutil.rmtree(earlier)
 
 
 def colour_and_depth(colors: np.ndarray, depths: np.ndarray) -> np.ndarray:

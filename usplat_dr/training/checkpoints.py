@@ -107,6 +107,25 @@ LOADABLE_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64, 
                    torch.int32, torch.uint8, torch.bool)
 
 
+def foreign_tensor(weights: dict[str, torch.Tensor]) -> str | None:
+    """What is wrong with the first tensor of ``weights`` that is not dense, of a
+    ``LOADABLE_DTYPES`` dtype, on the CPU or a GPU (a sparse, meta, quantised or float8 tensor
+    of the right shape fails later in some op with torch's message, or is cast silently by
+    ``load_state_dict``), else ``None``.
+
+    Examples:
+        >>> foreign_tensor({"w": torch.zeros(2)}) is None
+        True
+        >>> foreign_tensor({"w": torch.zeros(2).to(torch.float8_e4m3fn)})
+        'w is a torch.strided torch.float8_e4m3fn tensor on cpu'
+    """
+    for name, value in weights.items():
+        if (value.layout != torch.strided or value.device.type not in ("cpu", "cuda")
+                or value.is_quantized or value.dtype not in LOADABLE_DTYPES):
+            return f"{name} is a {value.layout} {value.dtype} tensor on {value.device.type}"
+    return None
+
+
 def _model_state(path: Path, state: dict) -> tuple[UniqueSplatCfg, dict[str, torch.Tensor]]:
     """The model config and weights of a loaded usplat checkpoint, checked against each other
     without building the network: a ``ValueError`` naming ``path`` unless ``model_config``
@@ -135,14 +154,11 @@ def _model_state(path: Path, state: dict) -> tuple[UniqueSplatCfg, dict[str, tor
         raise ValueError(f"{path}: its model_config does not describe a UniqueSplat "
                          f"({type(e).__name__}: {str(e)[:300]})") from None
     check_state_dict(expected, sd, what=f"checkpoint {path}")
+    foreign = foreign_tensor(sd)
+    if foreign:
+        raise ValueError(f"{path}: {foreign}: a checkpoint holds dense float or integer "
+                         f"tensors (a damaged or foreign file)")
     for name, value in sd.items():
-        # dense CPU tensors of the dtypes torch computes with: a sparse, meta, quantised or
-        # float8 tensor of the right shape would fail later in any op, with torch's message
-        if (value.layout != torch.strided or value.device.type != "cpu" or value.is_quantized
-                or value.dtype not in LOADABLE_DTYPES):
-            raise ValueError(f"{path}: {name} is a {value.layout} {value.dtype} tensor on "
-                             f"{value.device.type}: a checkpoint holds dense float or integer "
-                             f"tensors (a damaged or foreign file)")
         if value.is_complex() or value.is_floating_point() != expected[name].is_floating_point():
             raise ValueError(f"{path}: {name} is {value.dtype}, the network's is "
                              f"{expected[name].dtype}")
@@ -203,6 +219,56 @@ def training_image_shape(checkpoint: str | os.PathLike, trust: bool = False
                          f"must be [H, W] (at most {MAX_IMAGE_PIXELS:,} pixels), got "
                          f"{shape!r}; pass --image-shape H W")
     return int(shape[0]), int(shape[1])
+
+
+def training_depth_range(checkpoint: str | os.PathLike, trust: bool = False
+                         ) -> list[float] | None:
+    """[min near, max near, min far, max far] of the scenes a usplat checkpoint (a file or a
+    shipped name) was trained on: the file's ``depth_range`` (``usplat train`` records it), else
+    a shipped file's manifest entry, else ``None`` (older files, MVSplat's)."""
+    path = resolve_checkpoint(checkpoint)
+    state = read_usplat_checkpoint(path, trust=trust)
+    found = state.get("depth_range")
+    if found is None and path.parent.resolve() == CHECKPOINTS.resolve():
+        entries = json.loads((CHECKPOINTS / "manifest.json").read_text())
+        found = next((e.get("depth_range") for e in entries if e.get("file") == path.name), None)
+    if found is None:
+        return None
+    if (not isinstance(found, (list, tuple)) or len(found) != 4
+            or not all(isinstance(x, (int, float)) and 0 < x < float("inf") for x in found)):
+        raise ValueError(f"checkpoint {str(checkpoint)!r}: its depth_range must be four "
+                         f"positive numbers [min near, max near, min far, max far], got "
+                         f"{found!r}")
+    return [float(x) for x in found]
+
+
+#: How far outside a checkpoint's training depth range a scene's near/far may lie before
+#: ``depth_range_warning`` speaks: a factor of 2 either way. A choice, not a measured edge: it
+#: stays quiet for every scene kind the shipped checkpoints trained on and speaks for a scene
+#: in other units (millimetres, kilometres), where the loss is not small.
+DEPTH_RANGE_SLACK = 2.0
+
+
+def depth_range_warning(near: float, far: float, trained: list[float] | None) -> str | None:
+    """A warning when ``near``/``far`` lie more than ``DEPTH_RANGE_SLACK`` times outside the
+    ``trained`` range ([min near, max near, min far, max far], ``training_depth_range``), else
+    ``None``.
+
+    Examples:
+        >>> depth_range_warning(0.5, 20.0, [0.2, 2.125, 4.525, 100.0]) is None
+        True
+        >>> depth_range_warning(0.01, 20.0, [0.2, 2.125, 4.525, 100.0])[:23]
+        'near/far 0.01 / 20 lies'
+    """
+    if trained is None:
+        return None
+    lo_near, hi_near, lo_far, hi_far = trained
+    k = DEPTH_RANGE_SLACK
+    if lo_near / k <= near <= hi_near * k and lo_far / k <= far <= hi_far * k:
+        return None
+    return (f"near/far {near:.4g} / {far:.4g} lies far outside the checkpoint's training range "
+            f"(near {lo_near:.4g}-{hi_near:.4g}, far {lo_far:.4g}-{hi_far:.4g}): expect a "
+            f"worse render (near/far in docs/data.md)")
 
 
 def load_models(runs: dict, device) -> dict:
@@ -336,6 +402,8 @@ def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: 
                "model_config": state["model_config"], "config": state.get("config", {}),
                "step": state.get("step", 0), "provenance": state.get("provenance", {}),
                "metadata": metadata or {}}
+    if state.get("depth_range") is not None:  # the range of the scenes it was trained on
+        shipped["depth_range"] = state["depth_range"]
     if base is not None:
         base_path = resolve_checkpoint(base)
         base_state = read_usplat_checkpoint(base_path, trust=trust)

@@ -56,8 +56,9 @@ from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.lpips import LPIPS
 from usplat_dr.evaluation.provenance import provenance, training_keys
 from usplat_dr.io import UntrustedCheckpointError, torch_save
+from usplat_dr.io.atomic import ATOMIC_TEMPORARY
 from usplat_dr.training import cores as _cores
-from usplat_dr.training.checkpoints import read_usplat_checkpoint
+from usplat_dr.training.checkpoints import foreign_tensor, read_usplat_checkpoint
 from usplat_dr.training.config import RootCfg, model_from_config
 from usplat_dr.training.distributed import (
     gather,
@@ -88,9 +89,6 @@ NON_FINITE = re.compile(r"\bfinite\b|\bNaN\b")
 #: kernel releases a flock when its process ends, however it ends: a SIGKILLed run leaves no
 #: stale lock. The file holds the pid of its holder (for the message of a refused run).
 LOCK_NAME = ".usplat-train.lock"
-#: The temporary files of ``usplat_dr.io.atomic.atomic_open``: ``tempfile.mkstemp``'s
-#: ``.<name>.<8 random characters>.tmp`` beside the target, left behind by a killed write.
-ATOMIC_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
 _held: dict[Path, list] = {}  # folder -> [lock's file descriptor, depth]: re-entrant
 
 
@@ -302,6 +300,24 @@ def freeze_for_budget(model: torch.nn.Module, c: RootCfg) -> None:
         p.requires_grad_(name.split(".", 1)[0] == "importance")
 
 
+def widened_depth_range(depth_range: list[float] | None, near: torch.Tensor,
+                        far: torch.Tensor) -> list[float]:
+    """``depth_range`` ([min near, max near, min far, max far], or ``None``) widened to hold
+    a batch's ``near`` and ``far`` (any shape).
+
+    Examples:
+        >>> widened_depth_range(None, torch.tensor([[1.0, 2.0]]), torch.tensor([[50.0, 9.0]]))
+        [1.0, 2.0, 9.0, 50.0]
+        >>> widened_depth_range([1.0, 2.0, 9.0, 50.0], torch.tensor([0.5]), torch.tensor([20.0]))
+        [0.5, 2.0, 9.0, 50.0]
+    """
+    now = torch.stack([near.min(), near.max(), far.min(), far.max()]).double().tolist()
+    if depth_range is None:
+        return now
+    return [min(depth_range[0], now[0]), max(depth_range[1], now[1]),
+            min(depth_range[2], now[2]), max(depth_range[3], now[3])]
+
+
 def step_budget(c: RootCfg, step: int) -> dict:
     """The budget of step ``step``: ``forward``'s ``budget``, ``budget_tau`` and ``rank_by``
     (``{}`` without ``train.budget_fractions``). Drawn from a generator seeded with the run's
@@ -374,6 +390,9 @@ class Trainer:
                            if self.rank == 0 else {})
         self.step = 0
         self.skipped = 0
+        # [min near, max near, min far, max far] of the batches trained on: saved, so that
+        # ``render``/``view`` can warn when a scene's range lies far outside it
+        self.depth_range: list[float] | None = None
         self.saved_step = None  # the step of this run's checkpoint
         self.consecutive_bad = 0
         self._stop_signal = None
@@ -403,7 +422,7 @@ class Trainer:
                  "scheduler": self.scheduler.state_dict(), "step": self.step,
                  "rng": ranks[0]["rng"], "data": ranks[0]["data"], "skipped": self.skipped,
                  "config": self.cfg, "model_config": self.model.cfg.to_dict(),
-                 "provenance": self.provenance}
+                 "provenance": self.provenance, "depth_range": self.depth_range}
         if self.world > 1:
             state["ranks"] = ranks
         with disk_full_names(self.checkpoint_path):
@@ -452,6 +471,7 @@ class Trainer:
                               f"'config'), or move it away to start again from step "
                               f"0") from None
         self.step, self.skipped = state["step"], state.get("skipped", 0)
+        self.depth_range = state.get("depth_range")
         self.saved_step = self.step
         self.step_tracker.set_step(self.step)
         self._restore_position(path, state)
@@ -481,6 +501,12 @@ class Trainer:
             raise ConfigError(f"--resume: {path} has no usable {sorted(set(bad))} (a damaged "
                               f"checkpoint, or a shipped weights file: only usplat train's own "
                               f"last.ckpt resumes): move it away to start again from step 0")
+        foreign = isinstance(state["model"], dict) and foreign_tensor(
+            {k: v for k, v in state["model"].items() if isinstance(v, torch.Tensor)})
+        if foreign:  # load_state_dict would cast it into the float32 weights silently
+            raise ConfigError(f"--resume: {path}: {foreign}, where usplat train saves dense "
+                              f"float32 (a damaged or foreign file): move it away to start "
+                              f"again from step 0")
         return state
 
     #: Settings fixed when a run starts (the learning-rate schedule's length and shape, the
@@ -617,6 +643,7 @@ class Trainer:
         self.ddp.train()
         args = model_inputs(batch, self.device)
         target = batch["target"]["image"].to(self.device)
+        self.depth_range = widened_depth_range(self.depth_range, args.near, args.far)
         self.optimizer.zero_grad(set_to_none=True)
         # BatchNorm statistics change in the forward pass: kept to be put back if the step
         # is skipped (a NaN input would otherwise poison them for good)
