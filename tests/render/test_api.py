@@ -8,6 +8,7 @@ import torch
 
 from tests.render.helpers import gradients
 from usplat_dr.render import RasterSettings, rasterize, rasterize_drjit
+from usplat_dr.render.composite import padded_count
 from usplat_dr.render.scenes import pixel_aligned_scene, random_scene
 
 
@@ -106,8 +107,9 @@ def test_repeated_calls_are_deterministic(device):
 
 def test_repeated_gradients_agree_to_summation_order(device):
     # The backward accumulates per-Gaussian gradients with atomic scatter-adds (as the CUDA
-    # reference does), so the float32 summation order, and the last bits, follow thread
-    # scheduling: measured <= 1.3e-7 of the largest gradient; 1e-6 bounds it.
+    # reference does) or per-thread copies summed afterwards (LLVM's packet records), so the
+    # float32 summation order, and the last bits, follow thread scheduling: measured <= 1.3e-7
+    # of the largest gradient; 1e-6 bounds it.
     scene = pixel_aligned_scene(32, 32, seed=2)
     first = gradients(scene, rasterize, torch.float32, device)
     for _ in range(2):
@@ -146,6 +148,11 @@ def test_no_recompilation_for_new_camera_gaussians_or_near_far():
     for g in (317, 1000, 77):
         more = random_scene(g, 24, 24, seed=g)
         assert _kernel_hashes(lambda: _render_fwd_bwd(more)) == reference, f"G = {g}"  # noqa: B023 (called in this iteration)
+    # the packet backward bakes its (padded) target size in: counts inside one bucket share
+    # the kernels (1,100 and 1,250 both pad to 1,280)
+    assert padded_count(1100) == padded_count(1250) == 1280
+    in_bucket = _kernel_hashes(lambda: _render_fwd_bwd(random_scene(1100, 24, 24, seed=5)))
+    assert _kernel_hashes(lambda: _render_fwd_bwd(random_scene(1250, 24, 24, seed=6))) == in_bucket
     nf = base.to()
     nf.near, nf.far = nf.near * 0.5, nf.far * 3
     nf.background_color = torch.rand(1, 3)

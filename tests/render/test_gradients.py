@@ -55,16 +55,19 @@ def test_gradients_match_reference_autograd(device, scene):
     assert_grads_close(ours, ref)
 
 
-TILINGS = [RasterSettings(tile_size=t, opacity_cull=c) for t in (4, 8, 16) for c in (True, False)]
+TILINGS = [RasterSettings(tile_size=t, opacity_cull=c, backward_scatter=m)
+           for t in (4, 8, 16) for c in (True, False) for m in ("packet", "lanes")]
 
 
 @pytest.mark.parametrize("settings", TILINGS,
-                         ids=[f"tile{s.tile_size}-cull{int(s.opacity_cull)}" for s in TILINGS])
+                         ids=[f"tile{s.tile_size}-cull{int(s.opacity_cull)}-{s.backward_scatter}"
+                              for s in TILINGS])
 @pytest.mark.parametrize("scene", ["random_batch2", "high_opacity_clamp_and_stop"])
 def test_gradients_at_every_tiling(device, scene, settings):
     # 16 is the CUDA default and the reference's own cut; 4 and 8 are the CPU choices. Every
     # tiling must differentiate the same function, clamp and early stop included, so its
-    # backward is proven here before a GPU runs it.
+    # backward is proven here before a GPU runs it; with both ways of adding the gradients
+    # (the packet record with Expand, LLVM's default; the ten scalar scatters, CUDA's).
     sc = SCENES[scene]()
     ours = gradients(sc, rasterize, torch.float32, device, settings=settings)
     assert_grads_close(ours, gradients(sc, render_ref, torch.float64))

@@ -57,6 +57,21 @@ class PixelLanes:
     hw: object
 
 
+def padded_count(n: int) -> int:
+    """``n`` Gaussians rounded up to a bucket: 4 buckets per power of two (at most 25 % more,
+    and at least 1,024), so that a kernel whose target size is baked in (``ReduceMode.Expand``)
+    is compiled once per bucket, not once per count.
+
+    Examples:
+        >>> [padded_count(n) for n in (1, 1024, 1025, 8192, 8193, 131072, 150000)]
+        [1024, 1024, 1280, 8192, 10240, 131072, 163840]
+    """
+    if n <= 1024:
+        return 1024
+    step = 1 << max((n - 1).bit_length() - 3, 0)
+    return -(-n // step) * step
+
+
 def _types(x):
     mod = sys.modules[type(x).__module__]
     return mod.Float, mod.UInt32, mod.ArrayXf
@@ -84,11 +99,12 @@ class Composite(dr.CustomOp):
     # disconnect the gradients.
     @typing.no_type_check
     def eval(self, u, v, ca, cb, cc, opacity, r, g, b, z, bins: Bins, lanes: PixelLanes,
-             background, n_pix: int, clamp_gradient: str):
+             background, n_pix: int, clamp_gradient: str, backward_scatter: str = "lanes"):
         Float, UInt32, ArrayXf = _types(u)
         self.lanes = lanes
         self.num_gaussians = dr.width(u)
         self.clamp_gradient = clamp_gradient
+        self.backward_scatter = backward_scatter
 
         # ---- Per-pair records (one 64-byte record per (tile, Gaussian) pair) ----
         gid = bins.pair_gid
@@ -169,7 +185,11 @@ class Composite(dr.CustomOp):
         reference_clamp = self.clamp_gradient == "reference"
 
         n_g = self.num_gaussians
-        grads = [dr.zeros(Float, n_g) for _ in range(10)]
+        packet = self.backward_scatter == "packet"
+        if packet:  # one gradient record per Gaussian, the count padded to a bucket
+            record_grads = dr.zeros(Float, RECORD * padded_count(n_g))
+        else:
+            grads = [dr.zeros(Float, n_g) for _ in range(10)]
 
         # ---- Packet-uniform start: every lane walks from its packet's furthest position ----
         packet_last = dr.block_reduce(dr.ReduceOp.Max, last, PACKET)
@@ -215,14 +235,22 @@ class Composite(dr.CustomOp):
                 gd * w,                                       # depth
             )
             gid = dr.reinterpret_array(UInt32, rec[10])
-            for target, value in zip(grads, values):
-                dr.scatter_add(target, value, gid, active=use, mode=dr.ReduceMode.Local)
+            if packet:
+                record = ArrayXf([*values, *([Float(0.0)] * (RECORD - len(values)))])
+                dr.scatter_add(record_grads, record, gid, active=use,
+                               mode=dr.ReduceMode.Expand)
+            else:
+                for target, value in zip(grads, values):
+                    dr.scatter_add(target, value, gid, active=use, mode=dr.ReduceMode.Local)
             return pos, T, br, bg, bb, bd
 
         state = (first, Float(T_final), T_final * self.background[0],
                  T_final * self.background[1], T_final * self.background[2],
                  dr.zeros(Float, dr.width(T_final)))
         dr.while_loop(state, cond, body, label="usplat_composite_backward")
+        if packet:
+            rows = dr.gather(ArrayXf, record_grads, dr.arange(UInt32, n_g), shape=(RECORD, 1))
+            grads = [Float(rows[k]) for k in range(10)]
         for name, grad in zip(("u", "v", "ca", "cb", "cc", "opacity", "r", "g", "b", "z"), grads):
             self.set_grad_in(name, grad)
 

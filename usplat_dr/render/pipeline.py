@@ -227,7 +227,8 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     mod = module_of(means.array)
     Float, UInt32, TensorXf = mod.Float, mod.UInt32, mod.TensorXf
     height, width = image_shape
-    tile_size = settings.resolved_tile_size(dr.backend_v(means.array) == dr.JitBackend.CUDA)
+    is_cuda = dr.backend_v(means.array) == dr.JitBackend.CUDA
+    tile_size = settings.resolved_tile_size(is_cuda)
     n_pix = num_images * height * width
 
     bg = dr.detach(background_color.array)
@@ -292,7 +293,8 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     lanes = pixel_lanes(mod, num_images, height, width, tile_size)
     color, alpha, depth = dr.custom(
         Composite, proj.u, proj.v, *proj.conic, proj.opacity, *proj.rgb, proj.z, bins, lanes,
-        background, n_pix, settings.clamp_gradient)
+        background, n_pix, settings.clamp_gradient,
+        settings.resolved_backward_scatter(is_cuda))
     return RenderOutputDr(
         color=TensorXf(color, shape=(num_images, 3, height, width)),
         alpha=TensorXf(alpha, shape=(num_images, height, width)),

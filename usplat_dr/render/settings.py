@@ -38,6 +38,15 @@ class RasterSettings:
     and so puts the principal point at the image centre, whatever cx and cy are. The two
     agree when cx = cy = 0.5 and there is no skew; use ``"render_cuda"`` to reproduce
     official renders and numbers on data with an off-centre principal point.
+
+    Parameter ``backward_scatter`` (``"packet"``, ``"lanes"`` or ``None``): how the backward adds
+    each pair's ten gradients to its Gaussian. ``"packet"``: one scatter-add of a 16-float
+    gradient record per pair into a per-thread copy (``ReduceMode.Expand``: a vector
+    read-modify-write, no atomics; its target size is baked into the kernel, so the Gaussian
+    count is padded to a bucket, ``composite.padded_count``). ``"lanes"``: ten scalar
+    scatter-adds (``ReduceMode.Local``: Dr.Jit's helper walks a packet's lanes one by one on
+    LLVM; atomics on CUDA). ``None`` picks ``"packet"`` on LLVM and ``"lanes"`` on CUDA. Both
+    give the same gradients up to the order of float additions.
     """
 
     tile_size: int | None = None
@@ -45,6 +54,7 @@ class RasterSettings:
     sh_basis: Literal["3dgs", "mvsplat"] = "3dgs"
     clamp_gradient: Literal["exact", "reference"] = "exact"
     projection: Literal["intrinsics", "render_cuda"] = "intrinsics"
+    backward_scatter: Literal["packet", "lanes"] | None = None
 
     def __post_init__(self):
         if self.tile_size not in (None, 4, 8, 16):
@@ -58,11 +68,19 @@ class RasterSettings:
         if self.projection not in ("intrinsics", "render_cuda"):
             raise ValueError(f"projection must be 'intrinsics' or 'render_cuda', got "
                              f"{self.projection!r}")
+        if self.backward_scatter not in (None, "packet", "lanes"):
+            raise ValueError(f"backward_scatter must be 'packet', 'lanes' or None, got "
+                             f"{self.backward_scatter!r}")
 
     @staticmethod
     def reference() -> "RasterSettings":
         """The reference's own work decomposition: 16x16 tiles, no opacity culling (slower)."""
         return RasterSettings(tile_size=REFERENCE_TILE, opacity_cull=False)
+
+    def resolved_backward_scatter(self, is_cuda: bool) -> str:
+        if self.backward_scatter is not None:
+            return self.backward_scatter
+        return "lanes" if is_cuda else "packet"
 
     def resolved_tile_size(self, is_cuda: bool) -> int:
         if self.tile_size is not None:
