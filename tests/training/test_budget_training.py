@@ -18,7 +18,7 @@ from usplat_dr.training import Trainer
 from usplat_dr.training.checkpoints import load_model
 from usplat_dr.training.config import RootCfg, model_from_config
 from usplat_dr.training.losses import training_loss
-from usplat_dr.training.trainer import freeze_for_budget, step_budget
+from usplat_dr.training.stages import freeze_for_budget, step_budget
 
 pytestmark = pytest.mark.usefixtures("restore_threads")
 

@@ -149,7 +149,7 @@ def test_a_second_run_on_a_held_folder_stops_naming_it_and_a_killed_run_frees_it
         COUNTS["second run on a held folder refused"] += 1
     finally:
         stop(first)
-    from usplat_dr.training.trainer import run_folder_lock
+    from usplat_dr.training.run_folder import run_folder_lock
 
     with run_folder_lock(out):  # SIGKILLed: no stale lock, and the leftover is removed
         assert not leftover.exists()

@@ -20,6 +20,7 @@ from usplat_dr.evaluation.lpips import LPIPSWeightsMissing
 from usplat_dr.training import Trainer, TrainingStopped
 from usplat_dr.training.checkpoints import export_weights, training_depth_range
 from usplat_dr.training.config import RootCfg
+from usplat_dr.training.optim import GRAD_GROUPS, clip_gradients, group_grad_norms
 
 CONFIGS = Path(__file__).parents[2] / "usplat_dr" / "configs"
 pytestmark = pytest.mark.usefixtures("restore_threads")
@@ -275,7 +276,7 @@ def test_usplat_train_writes_checkpoint_metrics_and_validation_grid(synth_root, 
 
 
 def test_hyper_lr_scale_gives_the_hypernetwork_branches_their_own_rate(synth_root, tmp_path):
-    from usplat_dr.training.trainer import parameter_groups
+    from usplat_dr.training.optim import parameter_groups
 
     trainer = Trainer(config(synth_root, tmp_path / "h", 4, "model.variant=full",
                              "optimizer.hyper_lr_scale=10", "threads=1"))
@@ -362,7 +363,7 @@ def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, mo
     monkeypatch.setattr(_cores, "CoreKeeper", Recording)
     trainer = Trainer(config(synth_root, tmp_path, 1, f"keep_cores_awake={setting}",
                              "threads=1"))
-    with caplog.at_level(logging.INFO, logger="usplat_dr.training.trainer"):
+    with caplog.at_level(logging.INFO, logger="usplat_dr.training.run_folder"):
         trainer.fit()
     on = "on" if setting == "true" else "off"
     assert f"core keeper {on}: keep_cores_awake={setting}" in caplog.messages
@@ -388,15 +389,15 @@ def test_clip_gradients_equals_group_norms_then_clip_grad_norm(synth_root, tmp_p
     trainer.loss(out, batch)[0].backward()
     grads = {n: p.grad.clone() for n, p in trainer.model.named_parameters()
              if p.grad is not None}
-    norm, parts = trainer.clip_gradients()
+    norm, parts = clip_gradients(trainer.model, clip)
     clipped = {n: p.grad.clone() for n, p in trainer.model.named_parameters()
                if p.grad is not None}
     for n, p in trainer.model.named_parameters():
         if p.grad is not None:
             p.grad.copy_(grads[n])
-    expected_parts = trainer.group_grad_norms()
+    expected_parts = group_grad_norms(trainer.model)
     expected = torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), clip)
-    assert set(parts) == set(Trainer.GRAD_GROUPS.values())
+    assert set(parts) == set(GRAD_GROUPS.values())
     assert parts == expected_parts
     assert torch.equal(norm, expected)
     for n, p in trainer.model.named_parameters():

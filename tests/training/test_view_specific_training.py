@@ -12,7 +12,7 @@ from usplat_dr.config import ConfigError, load_config
 from usplat_dr.training import Trainer
 from usplat_dr.training.config import RootCfg, model_from_config
 from usplat_dr.training.run_log import read_metrics
-from usplat_dr.training.trainer import freeze_for_budget
+from usplat_dr.training.stages import freeze_for_budget
 
 pytestmark = pytest.mark.usefixtures("restore_threads")
 

@@ -9,7 +9,8 @@ Wall and process CPU time; medians over steps.
 
 ``--clip N``: instead, the gradient norms and clipping alone, N times each on one step's
 gradients (restored before every call), alternating the two calls the trainer made before
-(``group_grad_norms`` then ``torch.nn.utils.clip_grad_norm_``) and ``Trainer.clip_gradients``.
+(``group_grad_norms`` then ``torch.nn.utils.clip_grad_norm_``) and
+``usplat_dr.training.optim.clip_gradients``.
 
 ``--awake on|off``: instead, one process of train/bench/cores.py's comparison: the current
 trainer's per-phase medians of ``--steps`` steps (after 3 warm-up steps) per variant, with the
@@ -35,9 +36,11 @@ def old_group_grad_norms(trainer) -> dict:
     """The previous trainer's per-group norms: a float64 sum per parameter."""
     import torch
 
+    from usplat_dr.training.optim import GRAD_GROUPS
+
     sums: dict = {}
     for name, p in trainer.model.named_parameters():
-        key = trainer.GRAD_GROUPS.get(name.split(".", 1)[0])
+        key = GRAD_GROUPS.get(name.split(".", 1)[0])
         if key is not None and p.grad is not None:
             sq = p.grad.detach().double().square().sum()
             sums[key] = sums[key] + sq if key in sums else sq
@@ -48,6 +51,7 @@ def timed_step(trainer, batch, old: bool) -> dict:
     import torch
 
     from usplat_dr.data.types import model_inputs
+    from usplat_dr.training.optim import clip_gradients
 
     t, c = {}, {}
 
@@ -70,7 +74,7 @@ def timed_step(trainer, batch, old: bool) -> dict:
         old_group_grad_norms(trainer)
         torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), 0.5)
     else:
-        trainer.clip_gradients()
+        clip_gradients(trainer.model, 0.5)
     w, p = mark("norms+clip", w, p)
     trainer.optimizer.step()
     mark("optimiser", w, p)
@@ -96,6 +100,7 @@ def clip_ab(trainer, batch, repeats: int) -> tuple[float, float]:
     import torch
 
     from usplat_dr.data.types import model_inputs
+    from usplat_dr.training.optim import clip_gradients, group_grad_norms
 
     out = trainer.model(*model_inputs(batch, trainer.device), global_step=0)
     trainer.loss(out, batch)[0].backward()
@@ -109,10 +114,10 @@ def clip_ab(trainer, batch, repeats: int) -> tuple[float, float]:
                 p.grad.copy_(g)
             t0 = time.perf_counter()
             if i == 0:
-                trainer.group_grad_norms()
+                group_grad_norms(trainer.model)
                 torch.nn.utils.clip_grad_norm_(trainer.model.parameters(), clip)
             else:
-                trainer.clip_gradients()
+                clip_gradients(trainer.model, clip)
             times[i].append(time.perf_counter() - t0)
     return tuple(1000 * statistics.median(t) for t in times)
 

@@ -23,7 +23,7 @@ Expected skips (too few frames for the sampler, a null evaluation-index entry, F
 ``max_fov``, unexpected image shape) are counted without a warning; in the test stage
 (evaluation) the scenes the sampler gave no views (no index entry, too few frames) are also
 warned about, once per pass, with their count and the first of them. A skipped scene shortens
-its worker's pass by one example: the training stream (``usplat_dr.training.trainer.Batches``)
+its worker's pass by one example: the training stream (``usplat_dr.training.batches.Batches``)
 is endless, so a rank whose pass ends early starts its next epoch early, never waits.
 """
 

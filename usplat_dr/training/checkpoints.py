@@ -242,6 +242,24 @@ def training_depth_range(checkpoint: str | os.PathLike, trust: bool = False
     return [float(x) for x in found]
 
 
+def widened_depth_range(depth_range: list[float] | None, near: torch.Tensor,
+                        far: torch.Tensor) -> list[float]:
+    """``depth_range`` ([min near, max near, min far, max far], or ``None``) widened to hold
+    a batch's ``near`` and ``far`` (any shape).
+
+    Examples:
+        >>> widened_depth_range(None, torch.tensor([[1.0, 2.0]]), torch.tensor([[50.0, 9.0]]))
+        [1.0, 2.0, 9.0, 50.0]
+        >>> widened_depth_range([1.0, 2.0, 9.0, 50.0], torch.tensor([0.5]), torch.tensor([20.0]))
+        [0.5, 2.0, 9.0, 50.0]
+    """
+    now = torch.stack([near.min(), near.max(), far.min(), far.max()]).double().tolist()
+    if depth_range is None:
+        return now
+    return [min(depth_range[0], now[0]), max(depth_range[1], now[1]),
+            min(depth_range[2], now[2]), max(depth_range[3], now[3])]
+
+
 #: How far outside a checkpoint's training depth range a scene's near/far may lie before
 #: ``depth_range_warning`` speaks: a factor of 2 either way. A choice, not a measured edge: it
 #: stays quiet for every scene kind the shipped checkpoints trained on and speaks for a scene
