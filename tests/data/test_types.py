@@ -15,11 +15,11 @@ def parameters(fn) -> list[str]:
 
 
 def test_scene_inputs_are_in_the_order_of_forwards_parameters():
-    assert list(SceneInputs._fields) == parameters(UniqueSplat.forward)[:9]
-    # the context half: what the encoders take first
+    assert list(SceneInputs._fields) == parameters(UniqueSplat.forward)[:3]
+    # the context half, as loose tensors: what the encoders take first
     for fn in (UniqueSplat.encode, PrimaryNetwork.forward, PrimaryNetwork.encode):
-        assert parameters(fn)[:5] == list(SceneInputs._fields[:5]), fn.__qualname__
-    assert SceneInputs._fields.index("extrinsics") < SceneInputs._fields.index("intrinsics")
+        assert parameters(fn)[:5] == ["images", *SceneInputs.FLAT[:4]], fn.__qualname__
+    assert SceneInputs.FLAT.index("extrinsics") < SceneInputs.FLAT.index("intrinsics")
 
 
 def test_model_inputs_fills_each_field_from_its_namesake():

@@ -22,6 +22,7 @@ from usplat_dr.evaluation.view_specificity import (
 )
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.hypernet.hypernetwork import LayerDelta
+from usplat_dr.model.uniquesplat import StudyHooks
 
 
 @pytest.fixture(autouse=True)
@@ -97,9 +98,9 @@ def test_a_delta_w_that_differs_between_targets_is_seen():
     # PSNR from its definition in float64 on renders made without the meter's code:
     # forward with the hand-set Delta W against forward with none (the (b)-like renders)
     with torch.no_grad():
-        own = model(*args, delta_w=deltas).color[0]
-        zero = model(*args, delta_w={k: LayerDelta(bias=0 * d.bias, full=0 * d.full)
-                                     for k, d in deltas.items()}).color[0]
+        own = model(*args, hooks=StudyHooks(delta_w=deltas)).color[0]
+        zeros = {k: LayerDelta(bias=0 * d.bias, full=0 * d.full) for k, d in deltas.items()}
+        zero = model(*args, hooks=StudyHooks(delta_w=zeros)).color[0]
     d = psnr64(own, batch["target"]["image"][0]) - psnr64(zero, batch["target"]["image"][0])
     # float32 PSNR of float32 renders of 64x64 images: 1e-4 dB
     assert r.d_mean == pytest.approx(d.mean(), abs=1e-4)
@@ -155,9 +156,12 @@ def test_the_full_form_renders_what_the_rank_r_form_renders():
     model = UniqueSplat.from_preset("tiny", variant="full", delta_init_std=0.5).eval()
     args = scene(n=3)
     with torch.no_grad():
-        deltas = model.view_delta_w(*args[:3], *args[5:])
-        low = model(*args, delta_w=deltas).color
-        full = model(*args, delta_w={k: full_delta(d) for k, d in deltas.items()}).color
+        deltas = model.view_delta_w(args.images, args.extrinsics, args.intrinsics,
+                                    args.target_extrinsics, args.target_intrinsics,
+                                    args.target_near, args.target_far)
+        low = model(*args, hooks=StudyHooks(delta_w=deltas)).color
+        fulls = {k: full_delta(d) for k, d in deltas.items()}
+        full = model(*args, hooks=StudyHooks(delta_w=fulls)).color
     # A full convolution against base + U (V x): float32 reassociation in the heads (1e-6 on
     # the Gaussians), which rendering amplifies where a Gaussian's edge crosses a pixel
     # (measured: 14 of 36,864 values beyond 2e-5, the largest 1.3e-4); what the meter reads

@@ -13,6 +13,7 @@ import torch
 from tests.model.test_uniquesplat import scene
 from usplat_dr.model import UniqueSplat
 from usplat_dr.model.budget import (
+    GaussianBudget,
     ImportanceHead,
     adapt,
     apply_budget,
@@ -212,8 +213,8 @@ def test_no_budget_or_all_of_them_leaves_the_output_bit_for_bit(variant):
     with torch.no_grad():
         ref = plain(*args)
         total = len(ref.gaussians)
-        outs = [plain(*args, budget=1.0), headed(*args),
-                headed(*args, budget=total, rank_by="random")]
+        outs = [plain(*args, budget=GaussianBudget(1.0)), headed(*args),
+                headed(*args, budget=GaussianBudget(total, rank_by="random"))]
     for out in outs:
         for key in ("color", "alpha", "depth"):
             assert torch.equal(getattr(out, key), getattr(ref, key)), key
@@ -230,10 +231,10 @@ def test_a_budget_keeps_k_per_target_ranked_as_asked(caplog):
     args = scene(size=32, n=3)
     with torch.no_grad(), caplog.at_level(logging.WARNING, logger="usplat_dr.model.uniquesplat"):
         full = plain(*args, render=False)
-        control = plain(*args, budget=0.3, rank_by="opacity")
-        dither = plain(*args, budget=0.3)  # no head: dither, with a warning
-        plain(*args, budget=0.3)  # warned once per model
-        learned = headed(*args, budget=0.3)
+        control = plain(*args, budget=GaussianBudget(0.3, rank_by="opacity"))
+        dither = plain(*args, budget=GaussianBudget(0.3))  # no head: dither, with a warning
+        plain(*args, budget=GaussianBudget(0.3))  # warned once per model
+        learned = headed(*args, budget=GaussianBudget(0.3))
     warnings = [r.message for r in caplog.records if "no importance head" in r.message]
     assert len(warnings) == 1 and "synthetic_tiny_budget.yaml" in warnings[0]
     g, k = len(full.gaussians), round(0.3 * len(full.gaussians))
@@ -277,7 +278,7 @@ def test_gradients_reach_the_importance_head():
     torch.manual_seed(2)
     model = UniqueSplat.from_preset("tiny", variant="baseline", importance=True).train()
     args = scene(size=32, n=2)
-    out = model(*args, budget=0.25, budget_tau=0.5)
+    out = model(*args, budget=GaussianBudget(0.25, tau=0.5))
     assert len(out.gaussians) == 2 * 32 * 32 and "budget_mask" in out.aux
     assert "unbudgeted" in out.aux  # for loss.full_render
     out.color.square().mean().backward()
@@ -298,14 +299,14 @@ def test_budget_arguments_are_checked_before_the_networks_run():
     args = scene(size=32, n=1)
     with torch.no_grad():
         with pytest.raises(ValueError, match="budget must be"):
-            model(*args, budget=0)
+            model(*args, budget=GaussianBudget(0))
         with pytest.raises(ValueError, match="budget must be a fraction"):
-            model(*args, budget=1.5)
+            model(*args, budget=GaussianBudget(1.5))
         with pytest.raises(ValueError, match="rank_by must be one of"):
-            model(*args, budget=0.5, rank_by="size")
+            model(*args, budget=GaussianBudget(0.5, rank_by="size"))
         with pytest.raises(ValueError, match="rank_by='learned' needs a model with an "
                                              "importance head"):
-            model(*args, budget=0.5, rank_by="learned")
+            model(*args, budget=GaussianBudget(0.5, rank_by="learned"))
 
 
 def test_predict_takes_a_budget():

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from tests.model.conftest import two_view_cameras
+from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.model import UniqueSplat
 
 
@@ -31,8 +32,8 @@ def test_predict_is_forward_on_the_same_inputs(model):
                          target_extrinsics=te, near=1.0, far=100.0, chunk=5)
     x = torch.from_numpy(images).permute(0, 3, 1, 2).float()[None] / 255
     with torch.no_grad():
-        out = model(x, e[None], k[None], torch.ones(1, 2), torch.full((1, 2), 100.0), te[None],
-                    tk[None], torch.ones(1, 5), torch.full((1, 5), 100.0))
+        out = model(x, Cameras(e[None], k[None], torch.ones(1, 2), torch.full((1, 2), 100.0)),
+                    Cameras(te[None], tk[None], torch.ones(1, 5), torch.full((1, 5), 100.0)))
     # the same arithmetic on the same tensors: bit-for-bit
     assert torch.equal(pred.color, out.color[0].clamp(0, 1))
     assert torch.equal(pred.alpha, out.alpha[0])
@@ -51,12 +52,14 @@ def test_chunks_and_input_forms_do_not_change_the_views(model):
     again = model.predict(list(floats), intrinsics=k.numpy(), extrinsics=e.numpy(),
                           target_intrinsics=tk, target_extrinsics=te, chunk=2)
     # targets are independent; batching 2 instead of 5 changes only the convolutions' float
-    # rounding (measured ~1e-7; a wrong camera or view moves colours by > 1e-2)
-    assert (again.color - ref.color).abs().max() < 1e-5
+    # rounding: ~1e-7 alone, 1e-4 on a few pixels after the evaluation tests ran (near-equal
+    # depths swap places in the depth sort under such rounding, thread counts differing);
+    # a wrong camera or view moves colours by > 1e-2, so 1e-3 still tells them apart
+    assert (again.color - ref.color).abs().max() < 1e-3
     one = model.predict(images, intrinsics=k, extrinsics=e, target_intrinsics=tk[2],
                         target_extrinsics=te[2])  # a single camera, unbatched
     assert one.color.shape == (1, 3, 64, 64)
-    assert (one.color[0] - ref.color[2]).abs().max() < 1e-5
+    assert (one.color[0] - ref.color[2]).abs().max() < 1e-3  # (as above)
     assert model.training is False
 
 

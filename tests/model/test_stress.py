@@ -32,7 +32,7 @@ def scene(scale=1.0, baseline=0.1, fx=0.85, images=None, target_shift=0.05, rot=
     g = torch.Generator().manual_seed(1)
     x = torch.rand(1, 2, 3, 32, 32, generator=g) if images is None else images
     ones2, ones1 = torch.ones(1, 2), torch.ones(1, 1)
-    return SceneInputs(images=x, extrinsics=e, intrinsics=k, near=scale * ones2,
+    return SceneInputs.of(images=x, extrinsics=e, intrinsics=k, near=scale * ones2,
                        far=100 * scale * ones2, target_extrinsics=te,
                        target_intrinsics=k[:, :1].clone(), target_near=target_near * scale * ones1,
                        target_far=100 * scale * ones1)
@@ -68,12 +68,12 @@ def test_bad_values_are_clear_errors(model):
     nan_image = args.images.clone()
     nan_image[0, 1, 2, 3, 4] = float("nan")
     with pytest.raises(ValueError, match="images holds 1 NaN"):
-        model(*args._replace(images=nan_image))
+        model(*args.replaced(images=nan_image))
     with pytest.raises(ValueError, match="near must be > 0"):
-        model(*args._replace(near=torch.zeros(1, 2)))
+        model(*args.replaced(near=torch.zeros(1, 2)))
     te = args.target_extrinsics.clone()
     te[0, 0, 1, 3] = float("inf")
     with pytest.raises(ValueError, match="target_extrinsics holds 1 NaN or Inf"):
-        model(*args._replace(target_extrinsics=te))
+        model(*args.replaced(target_extrinsics=te))
     with pytest.raises(ValueError, match="target_far > target_near"):  # target far < near
-        model(*args._replace(target_far=torch.full((1, 1), 0.5)))
+        model(*args.replaced(target_far=torch.full((1, 1), 0.5)))

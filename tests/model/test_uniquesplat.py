@@ -11,10 +11,11 @@ import torch
 
 from tests.model.conftest import two_view_cameras
 from usplat_dr.data.types import SceneInputs
+from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.model import CheckpointMismatchError, PrimaryNetwork, UniqueSplat
 from usplat_dr.model.hypernet.hypernetwork import LayerDelta
 from usplat_dr.model.hypernet.resnet import ResNet18
-from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, UniqueSplatCfg
+from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, StudyHooks, UniqueSplatCfg
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.prune import PruneSettings
 
@@ -33,7 +34,7 @@ def scene(size: int = 64, n: int = 3, seed: int = 0, b: int = 1):
     te[:, :, 1, 3] = 0.02 * torch.arange(n)
     tk = k[:, :1].expand(b, n, 3, 3).clone()
     images = torch.rand(b, 2, 3, size, size, generator=g)
-    return SceneInputs(images=images, extrinsics=e, intrinsics=k, near=torch.ones(b, 2),
+    return SceneInputs.of(images=images, extrinsics=e, intrinsics=k, near=torch.ones(b, 2),
                        far=100 * torch.ones(b, 2), target_extrinsics=te, target_intrinsics=tk,
                        target_near=torch.ones(b, n), target_far=100 * torch.ones(b, n))
 
@@ -143,7 +144,7 @@ def test_per_target_specialisation_and_gradients_reach_every_part():
     te = args.target_extrinsics
     te2 = torch.cat([te[:, :2], te[:, :1]], 1)  # targets 0 and 2 are the same camera
     with torch.no_grad():
-        out = model(*args._replace(target_extrinsics=te2), render=False)
+        out = model(*args.replaced(target_extrinsics=te2), render=False)
     g0, g1, g2 = (out.target(0, i) for i in range(3))
     for name in FIELDS:
         # identical cameras: the same arithmetic on the same inputs in one batch
@@ -184,7 +185,7 @@ def test_each_target_renders_its_own_gaussians(device):
     # the per-target forward and the rasteriser on that device's Dr.Jit backend.
     torch.manual_seed(1)
     model = UniqueSplat.from_preset("tiny", variant="full").to(device)
-    args = SceneInputs(*(t.to(device) for t in scene(n=2)))
+    args = scene(n=2).to(device)
     train_steps(model, args, 2)
     model.eval()
     with torch.no_grad():
@@ -372,9 +373,11 @@ def test_three_context_views_render_and_every_view_counts(variant):
 
     def render(images, order):
         with torch.no_grad():
-            return model(images[:, order], c2w[None, [0, 2, 4]][:, order], k.expand(1, 3, 3, 3),
-                         torch.ones(1, 3), 10 * torch.ones(1, 3), c2w[None, [1, 3]],
-                         k.expand(1, 2, 3, 3), torch.ones(1, 2), 10 * torch.ones(1, 2), prune=None)
+            return model(images[:, order],
+                         Cameras(c2w[None, [0, 2, 4]][:, order], k.expand(1, 3, 3, 3),
+                                 torch.ones(1, 3), 10 * torch.ones(1, 3)),
+                         Cameras(c2w[None, [1, 3]], k.expand(1, 2, 3, 3), torch.ones(1, 2),
+                                 10 * torch.ones(1, 2)), prune=None)
 
     out = render(images, [0, 1, 2])
     assert out.color.shape == (1, 2, 3, 32, 32) and torch.isfinite(out.color).all()
@@ -421,11 +424,11 @@ def test_a_reused_encoding_and_given_delta_w_render_what_forward_renders():
     with torch.no_grad():
         ref = model(*args)
         encoding = model.encode(**context(args))
-        again = model(*args, encoding=encoding)
+        again = model(*args, hooks=StudyHooks(encoding=encoding))
         _, deltas, _ = model._target_weights(
             args.images, args.extrinsics, args.intrinsics, args.target_extrinsics,
             args.target_intrinsics, args.target_near, args.target_far)
-        given = model(*args, encoding=encoding, delta_w=deltas)
+        given = model(*args, hooks=StudyHooks(encoding=encoding, delta_w=deltas))
     # the same arithmetic on the same tensors: bit-for-bit
     assert torch.equal(again.color, ref.color) and torch.equal(given.color, ref.color)
     assert given.per_target
@@ -437,7 +440,7 @@ def test_a_reused_encoding_and_given_delta_w_render_what_forward_renders():
                       v=torch.randn(3, 2, spec.in_channels, spec.kernel_size, spec.kernel_size))
     with torch.no_grad():
         plain = base(*args)
-        zeroed = base(*args, delta_w={"to_disparity.2": zero})
+        zeroed = base(*args, hooks=StudyHooks(delta_w={"to_disparity.2": zero}))
     # Delta W = U V = 0 through the per-target path: the same Gaussians up to the float
     # rounding of a convolution batched differently, which the depth (up to far = 100)
     # amplifies: measured at 1 and 2 threads, means differ by <= 1.2e-4 on values up to ~100
@@ -457,8 +460,9 @@ def test_a_reused_encoding_and_given_delta_w_render_what_forward_renders():
     assert (g.harmonics - h.harmonics).abs().max() < 1e-5  # no Delta W on to_gaussians
     # and a Delta W that is not zero moves them far beyond that
     with torch.no_grad():
-        moved = base(*args, delta_w={"to_disparity.2": dataclasses.replace(
-            zero, bias=torch.full((3, spec.out_channels), 0.5))}, render=False).gaussians
+        half = dataclasses.replace(zero, bias=torch.full((3, spec.out_channels), 0.5))
+        moved = base(*args, render=False,
+                     hooks=StudyHooks(delta_w={"to_disparity.2": half})).gaussians
     assert rel(moved.means, h.means) > 1e-2 and (moved.opacities - h.opacities).abs().max() > 1e-2
 
 
@@ -468,23 +472,23 @@ def test_a_wrong_encoding_or_delta_w_names_the_argument():
     spec = model.conv_spec("to_gaussians.2")
     good = LayerDelta(bias=torch.zeros(2, spec.out_channels))
     with pytest.raises(ValueError, match="delta_w must map layer names"):
-        model(*args, delta_w={"primary.backbone": good}, render=False)
+        model(*args, render=False, hooks=StudyHooks(delta_w={"primary.backbone": good}))
     with pytest.raises(ValueError, match=r"delta_w\['to_gaussians.2'\] must be a LayerDelta "
                                          r"for B\*N = 2"):
-        model(*args, delta_w={"to_gaussians.2": LayerDelta(bias=torch.zeros(3, 1))},
-              render=False)
+        wrong = LayerDelta(bias=torch.zeros(3, 1))
+        model(*args, render=False, hooks=StudyHooks(delta_w={"to_gaussians.2": wrong}))
     with torch.no_grad():
         small = model.encode(**context(scene(size=32, n=2)))
     with pytest.raises(ValueError, match="encoding is for other context views"):
-        model(*args, encoding=small, render=False)
+        model(*args, render=False, hooks=StudyHooks(encoding=small))
     with torch.no_grad():
         dropped = model.encode(**context(args))
     dropped.drop_intermediates()  # what PrimaryNetwork.forward leaves: no head inputs
     with pytest.raises(ValueError, match="encoding must be what UniqueSplat.encode returned"):
-        model(*args, encoding=dropped, render=False)
+        model(*args, render=False, hooks=StudyHooks(encoding=dropped))
     grad = model.encode(**context(args))  # parameters require grad: so does the encoding
     with pytest.raises(ValueError, match="encoding needs a gradient"):
-        model(*args, encoding=grad, render=False)
+        model(*args, render=False, hooks=StudyHooks(encoding=grad))
     with pytest.raises(ValueError, match="name must be one of"):
         model.conv_spec("to_gaussians.1")
 

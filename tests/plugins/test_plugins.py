@@ -253,10 +253,12 @@ def test_docs_rasteriser_snippets_run(tmp_path, monkeypatch):
     assert len(blocks) == 2 and "mi.render" in blocks[1]
     monkeypatch.chdir(tmp_path)
     for code in blocks:
+        # mi.util.write_bitmap resolves a relative name through Mitsuba's file resolver, whose
+        # base is not always the current folder (a stray gaussians.png in the repository):
+        # the same call with the name made absolute
+        code = code.replace('"gaussians.png"', repr(str(tmp_path / "gaussians.png")))
         exec(compile(code, "rasteriser.md", "exec"), {})  # noqa: S102 (the docs' own code)
-    # mi.util.write_bitmap writes asynchronously and resolves its relative name when the task
-    # runs: wait for it here, or it lands in whatever folder the suite is in by then (a stray
-    # gaussians.png in the repository)
+    # and it writes asynchronously: wait for the file
     import time
 
     deadline = time.monotonic() + 60

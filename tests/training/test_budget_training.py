@@ -14,6 +14,7 @@ from tests.synth_sets import synthetic_set
 from usplat_dr.config import ConfigError, load_config
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
+from usplat_dr.model.budget import GaussianBudget
 from usplat_dr.training import Trainer
 from usplat_dr.training.checkpoints import load_model
 from usplat_dr.training.config import RootCfg, model_from_config
@@ -42,21 +43,21 @@ def test_each_step_draws_its_budget_from_the_config():
     choice = RootCfg(train=dataclasses.replace(RootCfg().train, steps=101,
                                                budget_fractions=(0.1, 0.3)))
     draws = [step_budget(choice, s) for s in range(101)]
-    assert {d["budget"] for d in draws} == {0.1, 0.3}
-    assert all(d["rank_by"] == "learned" for d in draws)
+    assert {d.keep for d in draws} == {0.1, 0.3}
+    assert all(d.rank_by == "learned" for d in draws)
     # a function of (seed, step): the same again, on every rank and after a resume
     assert draws == [step_budget(choice, s) for s in range(101)]
     # tau geometric from 1.0 at the first step to 0.05 at the last
-    assert draws[0]["budget_tau"] == 1.0 and math.isclose(draws[-1]["budget_tau"], 0.05)
-    assert math.isclose(draws[50]["budget_tau"], math.sqrt(0.05))
+    assert draws[0].tau == 1.0 and math.isclose(draws[-1].tau, 0.05)
+    assert math.isclose(draws[50].tau, math.sqrt(0.05))
     logu = RootCfg(train=dataclasses.replace(choice.train, budget_sampling="log_uniform",
                                              budget_fractions=(0.05, 0.6)))
-    values = [step_budget(logu, s)["budget"] for s in range(400)]
+    values = [step_budget(logu, s).keep for s in range(400)]
     assert 0.05 <= min(values) and max(values) <= 0.6
     # log-uniform: about half of the draws below the geometric mean sqrt(0.05 * 0.6)
     below = sum(v < math.sqrt(0.03) for v in values) / len(values)
     assert 0.4 < below < 0.6, below  # binomial(400, 0.5): 0.4..0.6 is 4 sigma
-    assert step_budget(RootCfg(), 3) == {}
+    assert step_budget(RootCfg(), 3) is None
 
 
 def test_budget_settings_are_checked_and_name_the_key(synth_root, tmp_path):
@@ -102,7 +103,7 @@ def test_budget_stage_from_a_trained_checkpoint(synth_root, tmp_path):
     assert step == 4 and model.importance is not None
     batch = stage.batches.next()
     with torch.no_grad():
-        out = model(*model_inputs(batch), budget=0.1)
+        out = model(*model_inputs(batch), budget=GaussianBudget(0.1))
         ref = base.model.eval()(*model_inputs(batch))
         same = model(*model_inputs(batch))
     assert (out.aux["kept"] == round(0.1 * 2 * 32 * 32)).all()
@@ -117,7 +118,7 @@ def test_the_full_render_term_joins_a_budgeted_step(synth_root, tmp_path):
     example = next(iter(dataset_from_section(cfg.dataset, "train")))
     trainer_batch = default_collate([example])
     args = model_inputs(trainer_batch)
-    out = model(*args, budget=0.2, budget_tau=0.5)
+    out = model(*args, budget=GaussianBudget(0.2, tau=0.5))
     loss, parts = training_loss(out, trainer_batch, cfg.loss, 0, torch.device("cpu"))
     unbudgeted = model(*args)
     target = trainer_batch["target"]["image"]

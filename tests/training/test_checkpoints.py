@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from usplat_dr.data.synth.scenes import KINDS, make_spec
+from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.model import UniqueSplat
 from usplat_dr.training.checkpoints import (
     BASE,
@@ -135,8 +136,9 @@ def test_entry_matches_its_sha256_and_loads(entry):
     e[0, 1, 0, 3], e[0, 2, 0, 3] = 0.2, 0.1
     images = torch.rand(1, 2, 3, 32, 32, generator=g)
     with torch.no_grad():
-        out = model(images, e[:, :2], k.expand(1, 2, 3, 3), torch.full((1, 2), 0.5),
-                    torch.full((1, 2), 20.0), e[:, 2:], k.expand(1, 1, 3, 3),
-                    torch.full((1, 1), 0.5), torch.full((1, 1), 20.0))
+        out = model(images, Cameras(e[:, :2], k.expand(1, 2, 3, 3), torch.full((1, 2), 0.5),
+                                    torch.full((1, 2), 20.0)),
+                    Cameras(e[:, 2:], k.expand(1, 1, 3, 3), torch.full((1, 1), 0.5),
+                            torch.full((1, 1), 20.0)))
     assert torch.isfinite(out.color).all() and out.color.shape == (1, 1, 3, 32, 32)
     assert math.isfinite(entry["metrics"]["splits"]["standard"]["psnr"])

@@ -17,6 +17,7 @@ from usplat_dr.config import ConfigError, load_config
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.lpips import LPIPSWeightsMissing
+from usplat_dr.model.budget import GaussianBudget
 from usplat_dr.training import Trainer, TrainingStopped
 from usplat_dr.training.checkpoints import export_weights, training_depth_range
 from usplat_dr.training.config import RootCfg
@@ -384,8 +385,8 @@ def test_clip_gradients_equals_group_norms_then_clip_grad_norm(synth_root, tmp_p
                              "model.overrides.importance=true", "threads=1",
                              f"optimizer.gradient_clip={clip}"))
     batch = trainer.batches.next()
-    out = trainer.model(*model_inputs(batch, trainer.device), global_step=0, budget=0.3,
-                        budget_tau=0.5)
+    out = trainer.model(*model_inputs(batch, trainer.device), global_step=0,
+                        budget=GaussianBudget(0.3, tau=0.5))
     trainer.loss(out, batch)[0].backward()
     grads = {n: p.grad.clone() for n, p in trainer.model.named_parameters()
              if p.grad is not None}

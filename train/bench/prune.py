@@ -90,7 +90,7 @@ def measure(model, batches, size: int, grid: dict) -> dict:
         images = inputs.images
         if images.shape[-1] != size:
             b, v = images.shape[:2]
-            inputs = inputs._replace(images=F.interpolate(
+            inputs = inputs.replaced(images=F.interpolate(
                 images.flatten(0, 1), size=(size, size), mode="bilinear", align_corners=False,
                 antialias=False).unflatten(0, (b, v)))
         with torch.inference_mode():

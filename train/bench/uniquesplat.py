@@ -51,11 +51,11 @@ def scene(size: int, device: str = "cpu"):
     te = torch.eye(4).repeat(1, 3, 1, 1)
     te[0, :, 0, 3] = torch.tensor([0.025, 0.05, 0.075])
     x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
-    args = SceneInputs(images=x, extrinsics=e, intrinsics=k, near=torch.ones(1, 2),
+    args = SceneInputs.of(images=x, extrinsics=e, intrinsics=k, near=torch.ones(1, 2),
                        far=100 * torch.ones(1, 2), target_extrinsics=te,
                        target_intrinsics=k[:, :1].expand(1, 3, 3, 3),
                        target_near=torch.ones(1, 3), target_far=100 * torch.ones(1, 3))
-    return SceneInputs(*(a.to(device) for a in args))
+    return args.to(device)
 
 
 def build(preset: str, variant: str, overrides: dict):

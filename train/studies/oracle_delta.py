@@ -65,6 +65,7 @@ from pathlib import Path
 
 import usplat_dr  # noqa: F401  (libLLVM before drjit)
 from usplat_dr import portable
+from usplat_dr.model.uniquesplat import StudyHooks
 
 portable.enable()  # AVX2 code paths, as the usplat command (before torch is imported)
 
@@ -167,8 +168,8 @@ def fit_scene(model, batch, specs, rank, steps: int, lr: float, seed: int, modes
                                 args.far)
 
     def render(fit, fit_args):
-        return model(*fit_args, encoding=encoding,
-                     delta_w=fit.deltas(fit_args.target_intrinsics.shape[1])).color[0]
+        deltas = fit.deltas(fit_args.target_intrinsics.shape[1])
+        return model(*fit_args, hooks=StudyHooks(encoding=encoding, delta_w=deltas)).color[0]
 
     def score(fit) -> list[float]:
         with torch.no_grad():
@@ -199,7 +200,7 @@ def fit_scene(model, batch, specs, rank, steps: int, lr: float, seed: int, modes
     if "context" in modes:  # render the context views themselves: what a test has
         fit = DeltaFit(specs, 1, rank, g, pair_bias)
         before = score(fit)
-        on_context = args._replace(  # the context cameras as the targets
+        on_context = args.replaced(  # the context cameras as the targets
             target_extrinsics=args.extrinsics, target_intrinsics=args.intrinsics,
             target_near=args.near, target_far=args.far)
         optimise(fit, on_context, args.images[0], steps)
@@ -372,7 +373,7 @@ def fit_transfer(model, batch, specs, rank: int, steps: int, lr: float, seed: in
 
     def sub(idx):
         i = torch.tensor(idx)
-        return args._replace(target_extrinsics=args.target_extrinsics[:, i],
+        return args.replaced(target_extrinsics=args.target_extrinsics[:, i],
                              target_intrinsics=args.target_intrinsics[:, i],
                              target_near=args.target_near[:, i], target_far=args.target_far[:, i])
 
@@ -386,7 +387,7 @@ def fit_transfer(model, batch, specs, rank: int, steps: int, lr: float, seed: in
                                 args.far)
 
     def render(deltas, a):
-        return model(*a, encoding=encoding, delta_w=deltas).color[0]
+        return model(*a, hooks=StudyHooks(encoding=encoding, delta_w=deltas)).color[0]
 
     def optimise(params, make, a, target, k):
         opt = torch.optim.Adam(params, lr=lr)

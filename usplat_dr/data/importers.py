@@ -627,11 +627,13 @@ def import_scene(scene: ImportedScene, out: str | os.PathLike, stage: str = "tes
         shutil.rmtree(partial)
     with ChunkWriter(partial, stage) as writer:
         writer.add(record)
-    # beside the stage's own metadata (the test stage's at the root): a train-stage import
-    # into the root of a test one keeps the test stage's index
+    # beside the stage's own metadata (the test stage's at the root, the train stage's in its
+    # folder): a train-stage import into the root of a test one keeps the test stage's index
     index = metadata_folder(out, stage) / "evaluation_index_standard.json"
-    remove_temporaries_of(index)  # what a killed import's write left
-    write_json(index, {key: entry})
+    inside_stage = index.parent == out / stage
+    written = partial / stage / index.name if inside_stage else index
+    remove_temporaries_of(written)  # what a killed import's write left
+    write_json(written, {key: entry})
     os.replace(partial / stage, out / stage)  # an empty out/stage is replaced too
     partial.rmdir()
     h, w = images[0].shape[:2]

@@ -36,6 +36,7 @@ from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.evaluation.provenance import keys_in_training
 from usplat_dr.io import atomic_open, write_json
+from usplat_dr.model.budget import GaussianBudget
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +125,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = model.to(device).eval()
+    keep = GaussianBudget.of(budget, rank_by)  # checked before any scene is read
     # The view-specificity meter for a (c), on the exact model (no budget, no pruning)
     metered = (bool(view_meter) and getattr(model, "specific", None) is not None
                and budget is None and prune is None)
@@ -140,8 +142,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         for i, example in enumerate(ds):
             batch = default_collate([example])
             t0 = time.perf_counter()
-            result = model(*model_inputs(batch, device), prune=prune, budget=budget,
-                           rank_by=rank_by)
+            result = model(*model_inputs(batch, device), prune=prune, budget=keep)
             times.append(time.perf_counter() - t0)
             gt = batch["target"]["image"][0].to(device)
             pred = result.color[0]

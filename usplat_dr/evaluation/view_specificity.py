@@ -15,7 +15,7 @@ protocol, not per-view weights. The meter reads, per scene:
   targets, and its sign says whether it helps);
 - ``d_zero`` / ``d_zero_abs``: the same against Delta W = 0 (what the branch does at all).
 
-All three renders go through the same code (a full Delta W per target, ``forward(delta_w=...)``
+All three renders go through the same code (a full Delta W per target, ``forward(hooks=...)``
 on one encoding), so the differences come from Delta W alone. ``summarise`` gives means over
 scenes with Student's t 95% intervals over scenes.
 
@@ -40,6 +40,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.model.hypernet.hypernetwork import LayerDelta
+from usplat_dr.model.uniquesplat import StudyHooks
 
 #: The manipulation check's bound (dB): a (c) counts as view-specific ("live") when the mean
 #: over held-out scenes of the mean absolute PSNR(per-target Delta W) - PSNR(scene-mean Delta W)
@@ -143,7 +144,8 @@ def read_batch(model, batch: dict, device: torch.device | str = "cpu",
         gt = batch["target"]["image"].to(device)
         scores = {}
         for arm, dw in arms.items():
-            out = model(*inputs, encoding=encoding, delta_w=dw, settings=settings, prune=None)
+            out = model(*inputs, hooks=StudyHooks(encoding=encoding, delta_w=dw),
+                        settings=settings, prune=None)
             scores[arm] = psnr(out.color, gt).double().cpu()  # [B, N]
         spreads = {k: layer_spread(d, weights[k], b, n) for k, d in deltas.items()}
     finally:

@@ -11,10 +11,41 @@
   same product). Tests project known points both ways (``tests/data/test_conventions.py``).
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from jaxtyping import Float
 from torch import Tensor
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """A batch of cameras as one value: ``extrinsics`` [B, N, 4, 4] (camera-to-world, OpenCV
+    axes), ``intrinsics`` [B, N, 3, 3] (normalised), ``near`` and ``far`` [B, N] (scene units),
+    the conventions above. ``UniqueSplat.forward`` takes the context views' and the targets'.
+
+    Examples:
+        >>> cams = Cameras(torch.eye(4).expand(1, 2, 4, 4), torch.eye(3).expand(1, 2, 3, 3),
+        ...                torch.ones(1, 2), torch.full((1, 2), 100.0))
+        >>> cams.count, cams.to("cpu").far.tolist()
+        (2, [[100.0, 100.0]])
+    """
+
+    extrinsics: Float[Tensor, "b n 4 4"]
+    intrinsics: Float[Tensor, "b n 3 3"]
+    near: Float[Tensor, "b n"]
+    far: Float[Tensor, "b n"]
+
+    @property
+    def count(self) -> int:
+        """N: cameras per example."""
+        return self.extrinsics.shape[1]
+
+    def to(self, device: torch.device | str) -> "Cameras":
+        """The same cameras on ``device``."""
+        return Cameras(*(t.to(device) for t in (self.extrinsics, self.intrinsics, self.near,
+                                               self.far)))
 
 
 def look_at(

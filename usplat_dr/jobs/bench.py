@@ -45,12 +45,13 @@ from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation import depth_metrics, nan_mean, synthetic_indices
 from usplat_dr.evaluation.metrics import psnr, ssim
+from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.io import atomic_open, write_json
 from usplat_dr.jobs.arguments import non_negative_int
 from usplat_dr.jobs.budgets import BUDGETS, ensure_data, training_config
 from usplat_dr.jobs.report import bench_chart, bench_table
-from usplat_dr.model.budget import RANKINGS
-from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS
+from usplat_dr.model.budget import RANKINGS, GaussianBudget
+from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS, StudyHooks
 from usplat_dr.render.prune import PRUNES
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import BASE, load, load_models, shipped_checkpoints
@@ -231,8 +232,8 @@ def _time_scene(config: BenchConfig, model, inputs, targets: dict, settings: lis
     for name, prune, size in settings:
         tgt = targets[size]
         w0, c0 = time.perf_counter(), time.process_time()
-        model.render_targets(out, *(tgt[k].to(device) for k in (
-            "extrinsics", "intrinsics", "near", "far")), (size, size), prune=prune)
+        model.render_targets(out, Cameras(*(tgt[k].to(device) for k in (
+            "extrinsics", "intrinsics", "near", "far"))), (size, size), prune=prune)
         _wait(device)
         a = acc[(config, split, name, size)]
         a["render"].append((time.perf_counter() - w0) / n)  # pruning and rasterising
@@ -259,15 +260,15 @@ def _time_budgets(config: BenchConfig, model, inputs, tgt: dict, size: int, budg
         _wait(device)
         enc_wall, enc_cpu = time.perf_counter() - w0, time.process_time() - c0
     total = inputs.images.shape[1] * size * size * model.cfg.primary.gaussians_per_pixel
-    cams = [tgt[k].to(device) for k in ("extrinsics", "intrinsics", "near", "far")]
+    cams = Cameras(*(tgt[k].to(device) for k in ("extrinsics", "intrinsics", "near", "far")))
     for name, fraction, rank_by in budgets:
         with PeakMemory(device) as mem:
             w0, c0 = time.perf_counter(), time.process_time()
-            out = model(*inputs, render=False, encoding=encoding, budget=fraction,
-                        rank_by=rank_by)
+            out = model(*inputs, render=False, hooks=StudyHooks(encoding=encoding),
+                        budget=GaussianBudget(fraction, rank_by))
             _wait(device)
             r0 = time.perf_counter()
-            model.render_targets(out, *cams, (size, size), prune=None)
+            model.render_targets(out, cams, (size, size), prune=None)
             _wait(device)
         a = acc[(config, split, name, size)]
         a["render"].append((time.perf_counter() - r0) / n)  # rasterising the K kept

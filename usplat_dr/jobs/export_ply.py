@@ -8,6 +8,7 @@ import torch
 from usplat_dr.data.types import model_inputs
 from usplat_dr.jobs.arguments import non_negative_int, out_file
 from usplat_dr.jobs.render_video import add_example_arguments, one_example
+from usplat_dr.model.budget import GaussianBudget
 from usplat_dr.model.ply import write_ply
 
 
@@ -22,7 +23,7 @@ def run(args: argparse.Namespace) -> int:
     model, batch = one_example(args)
     with torch.no_grad():
         out = model(*model_inputs(batch, torch.device(args.device)), render=False,
-                    budget=args.gaussians, rank_by=args.rank_by)
+                    budget=GaussianBudget.of(args.gaussians, args.rank_by))
     n = out.num_targets
     if not 0 <= args.target < n:
         raise ValueError(f"--target must be in 0..{n - 1} (the scene's target views), got "

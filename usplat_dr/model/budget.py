@@ -90,6 +90,42 @@ DITHER_TILE = 8
 LOCAL_WINDOW = 9
 
 
+@dataclass(frozen=True)
+class GaussianBudget:
+    """Keep ``keep`` Gaussians per target view: a count (an int >= 1) or a fraction in (0, 1]
+    of them (``budget_count``), ranked by ``rank_by``: ``"learned"`` (the importance head,
+    the kept Gaussians adapted to the budget), ``"dither"`` (what the untrained head does),
+    ``"opacity"`` or ``"random"`` (seeded with ``seed``), the controls; ``None``: learned where
+    the model has the head, else dither (with a warning). ``tau`` > 0: the relaxed mask of
+    training instead of the hard top-K. ``UniqueSplat.forward(budget=...)`` takes it.
+
+    Examples:
+        >>> GaussianBudget(0.3, rank_by="opacity")
+        GaussianBudget(keep=0.3, rank_by='opacity', tau=None, seed=0)
+        >>> GaussianBudget(0.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: budget must be a fraction in (0, 1] (or a count, an int >= 1), got 0.0
+    """
+
+    keep: float | int
+    rank_by: str | None = None
+    tau: float | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        budget_count(self.keep, 1)  # the value's own checks, before any network runs
+        if self.rank_by is not None and self.rank_by not in RANKINGS:
+            raise ValueError(f"rank_by must be one of {RANKINGS} or None, got "
+                             f"{self.rank_by!r}")
+
+    @staticmethod
+    def of(keep, rank_by: str | None = None, tau: float | None = None,
+           seed: int = 0) -> "GaussianBudget | None":
+        """The budget of these loose settings, ``None`` when ``keep`` is (every Gaussian)."""
+        return None if keep is None else GaussianBudget(keep, rank_by, tau, seed)
+
+
 def budget_count(budget, total: int) -> int:
     """K, the Gaussians a budget keeps of ``total``: an int is a count (>= 1; one at least
     ``total`` keeps them all), a float a fraction in (0, 1] (K = round(fraction x total),

@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from usplat_dr.geometry.cameras import Cameras
+from usplat_dr.model.budget import GaussianBudget
 from usplat_dr.model.types import Gaussians
 
 #: near/far of the field's released checkpoints (MVSplat's RE10K and ACID: 1 and 100, in the
@@ -130,16 +132,16 @@ def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
     model.eval()
     gaussians, colors, alphas, depths = [], [], [], []
     try:
-        context = dict(images=imgs[None].to(device), intrinsics=k[None].to(device),
-                       extrinsics=e[None].to(device), near=near_t[None].to(device),
-                       far=far_t[None].to(device))
+        images = imgs[None].to(device)
+        context = Cameras(e[None].to(device), k[None].to(device), near_t[None].to(device),
+                          far_t[None].to(device))
+        keep = GaussianBudget.of(budget, rank_by)
         for s in range(0, tk.shape[0], chunk):
             n = min(chunk, tk.shape[0] - s)
-            out = model(**context, target_intrinsics=tk[None, s:s + n].to(device),
-                        target_extrinsics=te[None, s:s + n].to(device),
-                        target_near=near_t.min().expand(1, n).to(device),
-                        target_far=far_t.max().expand(1, n).to(device), budget=budget,
-                        rank_by=rank_by)
+            targets = Cameras(te[None, s:s + n].to(device), tk[None, s:s + n].to(device),
+                              near_t.min().expand(1, n).to(device),
+                              far_t.max().expand(1, n).to(device))
+            out = model(images, context, targets, budget=keep)
             if all_gaussians or not gaussians:
                 gaussians += [out.target(0, i) for i in range(n if all_gaussians else 1)]
             colors.append(out.color[0].clamp(0, 1))

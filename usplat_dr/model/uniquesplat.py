@@ -17,8 +17,9 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.model.budget import (
-    RANKINGS,
+    GaussianBudget,
     ImportanceHead,
     apply_budget,
     budget_count,
@@ -222,14 +223,25 @@ class GeneratedConv(nn.Module):
         return f"{self.spec}"
 
 
+@dataclass(frozen=True)
+class StudyHooks:
+    """What studies that hold parts of the network fixed give ``forward`` (``hooks=``):
+    ``encoding``, what ``UniqueSplat.encode`` returned for these context views, skips the
+    encoder (its result must not need a gradient); ``delta_w`` (layer name -> ``LayerDelta``
+    for B*N targets, layers of ``INJECTABLE``) replaces the view-specific branch's Delta W,
+    in any variant."""
+
+    encoding: DepthOutputs | None = None
+    delta_w: dict | None = None
+
+
 class UniqueSplat(nn.Module):
     """``UniqueSplat(config)`` or ``UniqueSplat.from_preset("paper" | "small" | "tiny",
     variant=...)``.
 
-    ``forward(images, extrinsics, intrinsics, near, far, target_extrinsics,
-    target_intrinsics, target_near, target_far, render=True) -> UniqueSplatOutput``: the
-    order of ``SceneInputs``. Cameras follow the field's conventions (camera-to-world OpenCV
-    extrinsics, normalised intrinsics), extrinsics before intrinsics at every seam.
+    ``forward(images, context, targets, *, render=True, ...) -> UniqueSplatOutput``: the
+    order of ``SceneInputs``, the cameras as ``Cameras`` values following the field's
+    conventions (camera-to-world OpenCV extrinsics, normalised intrinsics).
     """
 
     def __init__(self, config: UniqueSplatCfg | None = None):
@@ -243,6 +255,8 @@ class UniqueSplat(nn.Module):
                            for t in cfg.target_layers)
         self.specific_specs = tuple(s for s in self.specs if s.name in cfg.specific_layers)
         self._cached_weights = None
+        #: Renders the predicted Gaussians (MVSplat's SH basis): ``render_targets``.
+        self.decoder = DecoderSplatting()
         #: Per-target pruning before rasterisation when not training (``forward``'s
         #: ``prune="auto"``); ``None`` renders every Gaussian. See ``usplat_dr.render.prune``.
         self.inference_prune = DEFAULT_INFERENCE_PRUNE
@@ -370,45 +384,39 @@ class UniqueSplat(nn.Module):
             raise ValueError("target_near must be > 0 and target_far > target_near")
         return n
 
-    def forward(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
-                intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
-                far: Float[Tensor, "b v"], target_extrinsics: Float[Tensor, "b n 4 4"],
-                target_intrinsics: Float[Tensor, "b n 3 3"], target_near: Float[Tensor, "b n"],
-                target_far: Float[Tensor, "b n"], render: bool = True, global_step: int = 0,
-                background_color: Tensor | None = None, settings=None, prune="auto", *,
-                encoding: DepthOutputs | None = None, delta_w: dict | None = None,
-                budget: float | int | None = None,  # noqa: PYI041 (beartype: int is no float)
-                rank_by: str | None = None, budget_tau: float | None = None,
-                budget_seed: int = 0) -> UniqueSplatOutput:
+    def forward(self, images: Float[Tensor, "b v 3 h w"], context: Cameras, targets: Cameras,
+                *, render: bool = True, global_step: int = 0,
+                background_color: Tensor | None = None, settings=None, prune="auto",
+                budget: GaussianBudget | None = None,
+                hooks: StudyHooks | None = None) -> UniqueSplatOutput:
         """Gaussians per target view, and their renders (``render=True``) through the
         Dr.Jit rasteriser with MVSplat's SH basis (``settings``: a ``RasterSettings``).
+        ``context``: the ``Cameras`` of the V context ``images``; ``targets``: the N target
+        cameras (``model(*model_inputs(batch))`` passes all three).
 
         ``prune``: a ``PruneSettings`` applied per target before rasterising, ``None`` for
         none, or ``"auto"``: none while training, ``self.inference_prune`` otherwise. The
         number of Gaussians each target rendered is ``out.aux["rendered"]`` [B, N].
 
-        For studies that hold the primary network fixed: ``encoding``, what ``encode`` returned
-        for these context views, skips the encoder (its result must not need a gradient);
-        ``delta_w`` (layer name -> ``LayerDelta`` for B*N targets, layers of ``INJECTABLE``)
-        replaces the view-specific branch's Delta W, in any variant.
+        ``budget`` (a ``GaussianBudget``, model/budget.py): keep K Gaussians per target, ranked
+        as it says. ``out.aux["kept"]`` [B, N]: the Gaussians each target kept; with a budget
+        also ``importance`` (the ranking scores) and ``kept_mask`` [B*N, G]. ``budget=None``
+        (or a fraction of 1) leaves every output as without it, bit for bit.
 
-        ``budget`` (model/budget.py): keep K Gaussians per target, K a count (an int) or a
-        fraction in (0, 1] of them, ranked by ``rank_by``: ``"learned"`` (the importance head,
-        with the kept Gaussians adapted to the budget), ``"dither"`` (what the untrained head
-        does), ``"opacity"`` or ``"random"`` (seeded with ``budget_seed``), the controls;
-        ``None``: learned where the model has the head, else dither (with a warning).
-        ``budget_tau`` > 0: the relaxed mask of training instead of the hard top-K.
-        ``out.aux["kept"]`` [B, N]: the Gaussians each target kept; with a budget also
-        ``importance`` (the ranking scores) and ``kept_mask`` [B*N, G]. ``budget=None`` (or a
-        fraction of 1) leaves every output as without it, bit for bit."""
+        ``hooks`` (``StudyHooks``): for studies that hold parts of the network fixed."""
+        if budget is not None and not isinstance(budget, GaussianBudget):
+            raise ValueError(f"budget must be a GaussianBudget (e.g. GaussianBudget(0.3)) or "
+                             f"None, got {budget!r}")
+        hooks = hooks or StudyHooks()
+        encoding, delta_w = hooks.encoding, hooks.delta_w
+        extrinsics, intrinsics, near, far = (context.extrinsics, context.intrinsics,
+                                             context.near, context.far)
+        target_extrinsics, target_intrinsics, target_near, target_far = (
+            targets.extrinsics, targets.intrinsics, targets.near, targets.far)
         if isinstance(prune, str) and prune != "auto":
             raise ValueError(f"prune must be a PruneSettings, None or 'auto', got {prune!r}")
         if prune == "auto":
             prune = None if self.training else self.inference_prune
-        if budget is not None:  # before any network runs
-            budget_count(budget, 1)
-        if rank_by is not None and rank_by not in RANKINGS:
-            raise ValueError(f"rank_by must be one of {RANKINGS} or None, got {rank_by!r}")
         b, v, _, h, w = images.shape
         n = self.check_targets(b, target_extrinsics, target_intrinsics, target_near, target_far)
         with self._autocast(images.device):
@@ -430,7 +438,8 @@ class UniqueSplat(nn.Module):
         kept = len(gaussians)
         if budget is not None:
             gaussians, kept = self._budgeted(gaussians, depth, aux, images.device, v, b, n,
-                                             budget, rank_by, budget_tau, budget_seed)
+                                             budget.keep, budget.rank_by, budget.tau,
+                                             budget.seed)
         aux["kept"] = torch.full((b, n), kept, device=images.device)
         # The context views' depth maps [B, V, H, W] (the first target's where they differ
         # per target; MVSplat's depth: the distance along the pixel's unit ray, not z): what
@@ -443,8 +452,7 @@ class UniqueSplat(nn.Module):
         out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
                                 aux=aux)
         if render:
-            self.render_targets(out, target_extrinsics, target_intrinsics, target_near,
-                                target_far, (h, w), background_color, settings, prune)
+            self.render_targets(out, targets, (h, w), background_color, settings, prune)
         return out
 
     def _budgeted(self, gaussians: Gaussians, depth: DepthOutputs, aux: dict,
@@ -542,8 +550,9 @@ class UniqueSplat(nn.Module):
                      encoding: DepthOutputs | None = None) -> dict[str, LayerDelta]:
         """The view-specific branch's Delta W for each target (layer name -> ``LayerDelta``
         for B*N targets, target n of scene b at b N + n), what ``forward`` adds to W; ``{}``
-        for a model without the branch. ``forward(delta_w=...)`` takes it back (edited, or
-        as ``usplat_dr.evaluation.view_specificity`` does, averaged over a scene's targets).
+        for a model without the branch. ``forward(hooks=StudyHooks(delta_w=...))`` takes it
+        back (edited, or as ``usplat_dr.evaluation.view_specificity`` does, averaged over a
+        scene's targets).
         With ``view_features="primary"`` E_H reads the encoder's features: ``encoding``
         (``encode``'s), or the context ``near``/``far`` to compute it."""
         if self.specific is None:
@@ -639,19 +648,17 @@ class UniqueSplat(nn.Module):
                 for f in fields(Gaussians)})
         return gaussians
 
-    @staticmethod
-    def render_targets(out: UniqueSplatOutput, target_extrinsics: Float[Tensor, "b n 4 4"],
-                       target_intrinsics: Float[Tensor, "b n 3 3"],
-                       target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"],
+    def render_targets(self, out: UniqueSplatOutput, targets: Cameras,
                        image_shape: tuple[int, int], background_color=None, settings=None,
                        prune=None) -> None:
-        """Render ``out``'s Gaussians for its targets at ``image_shape`` (any size: the
+        """Render ``out``'s Gaussians for its ``targets`` at ``image_shape`` (any size: the
         intrinsics are normalised) into ``out.color/alpha/depth`` and ``out.aux["rendered"]``
-        with the decoder (``usplat_dr.model.decoder``); ``forward(render=True)`` calls it at
-        the context images' size. ``prune``: a ``PruneSettings`` or ``None``."""
-        r = DecoderSplatting(settings).forward(out.gaussians, target_extrinsics,
-                                               target_intrinsics, target_near, target_far,
-                                               image_shape, background_color, prune)
+        with the model's decoder (``self.decoder``, ``usplat_dr.model.decoder``; another
+        ``settings`` renders through one made for them); ``forward(render=True)`` calls it
+        at the context images' size. ``prune``: a ``PruneSettings`` or ``None``."""
+        decoder = self.decoder if settings is None else DecoderSplatting(settings)
+        r = decoder.forward(out.gaussians, targets.extrinsics, targets.intrinsics, targets.near,
+                            targets.far, image_shape, background_color, prune)
         out.color, out.alpha, out.depth = r.color, r.alpha, r.depth
         out.aux["rendered"] = r.rendered
 

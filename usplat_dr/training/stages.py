@@ -8,6 +8,7 @@ import random
 import torch
 
 from usplat_dr.config import ConfigError
+from usplat_dr.model.budget import GaussianBudget
 from usplat_dr.training.config import RootCfg
 
 
@@ -45,13 +46,14 @@ def freeze_for_budget(model: torch.nn.Module, c: RootCfg) -> None:
         p.requires_grad_(name.split(".", 1)[0] == "importance")
 
 
-def step_budget(c: RootCfg, step: int) -> dict:
-    """The budget of step ``step``: ``forward``'s ``budget``, ``budget_tau`` and ``rank_by``
-    (``{}`` without ``train.budget_fractions``). Drawn from a generator seeded with the run's
-    seed and the step: the same on every rank and after a resume, and no RNG state touched."""
+def step_budget(c: RootCfg, step: int) -> GaussianBudget | None:
+    """The ``GaussianBudget`` of step ``step`` (``None`` without ``train.budget_fractions``):
+    ranked by the learned head, relaxed with the annealed ``tau``. Drawn from a generator
+    seeded with the run's seed and the step: the same on every rank and after a resume, and no
+    RNG state touched."""
     tc = c.train
     if not tc.budget_fractions:
-        return {}
+        return None
     rng = random.Random(c.seed * 1_000_003 + step)
     if tc.budget_sampling == "choice":
         fraction = rng.choice(tc.budget_fractions)
@@ -60,4 +62,4 @@ def step_budget(c: RootCfg, step: int) -> dict:
         fraction = math.exp(rng.uniform(lo, hi))
     t0, t1 = tc.budget_tau
     tau = t0 * (t1 / t0) ** min(step / max(tc.steps - 1, 1), 1.0)
-    return {"budget": float(fraction), "budget_tau": tau, "rank_by": "learned"}
+    return GaussianBudget(float(fraction), rank_by="learned", tau=tau)

@@ -215,14 +215,15 @@ class Trainer:
         self.ddp.train()
         args = model_inputs(batch, self.device)
         target = batch["target"]["image"].to(self.device)
-        self.depth_range = widened_depth_range(self.depth_range, args.near, args.far)
+        self.depth_range = widened_depth_range(self.depth_range, args.context.near,
+                                               args.context.far)
         self.optimizer.zero_grad(set_to_none=True)
         # BatchNorm statistics change in the forward pass: kept to be put back if the step
         # is skipped (a NaN input would otherwise poison them for good)
         buffers = {n: b.detach().clone() for n, b in self.model.named_buffers()}
         budget = step_budget(self.config, self.step)
         try:
-            out = self.ddp(*args, global_step=self.step, **budget)
+            out = self.ddp(*args, global_step=self.step, budget=budget)
             loss, parts = self.loss(out, batch)
             loss.backward()
         except ValueError as e:
@@ -248,8 +249,8 @@ class Trainer:
         with torch.no_grad():
             mse = (out.color.clamp(0, 1) - target).square().mean((-3, -2, -1))
             psnr = (-10 * torch.log10(mse.clamp(min=1e-10))).mean().item()
-        if budget:
-            parts["budget"] = budget["budget"]
+        if budget is not None:
+            parts["budget"] = budget.keep
         return {"loss": loss.item(), "psnr": psnr, "grad_norm": norm.item(),
                 "lr": self.scheduler.get_last_lr()[0], **parts}
 
