@@ -87,6 +87,17 @@ def test_readme_is_a_front_door():
     assert n <= MAX_LINES, f"README.md has {n} lines; move details into docs/ (<= {MAX_LINES})"
 
 
+def test_the_demo_time_is_stated_once():
+    # one constant: the CLI's help reads it, the README's command line must say the same
+    from usplat_dr.cli import COMMANDS
+    from usplat_dr.jobs import DEMO_MINUTES
+
+    demo_line = next(line for line in README.read_text().splitlines()
+                     if line.startswith("bash scripts/run.sh demo"))
+    assert f"({DEMO_MINUTES} min on 2 CPU cores)" in demo_line, demo_line
+    assert f"{DEMO_MINUTES} minutes" in COMMANDS["demo"][1]
+
+
 def test_no_page_speaks_of_the_process():
     pages = [README, ROOT / "BENCHMARKS.md", *sorted((ROOT / "docs").glob("*.md")),
              *sorted((ROOT / "train").glob("*/README.md")), ROOT / "plugins" / "README.md"]

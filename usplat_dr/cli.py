@@ -12,6 +12,7 @@ import logging
 import sys
 
 from usplat_dr import __version__, _threads, portable
+from usplat_dr.jobs import DEMO_MINUTES
 
 #: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
 COMMANDS = {
@@ -32,7 +33,7 @@ COMMANDS = {
     "export-ply": ("export_ply",
                    "the Gaussians predicted for one target view, as a standard 3DGS PLY"),
     "demo": ("demo", ("the main job: synthetic data, train (a) and (c), evaluate, write a "
-                      "report (4-10 minutes on 2 CPU cores)")),
+                      f"report ({DEMO_MINUTES} minutes on 2 CPU cores)")),
     "bench": ("bench", ("speed against accuracy: train (or reuse) size presets x variants on "
                         "the demo's data, measure time per view, memory, Gaussians and "
                         "accuracy; CSV + chart in OUT/bench")),
