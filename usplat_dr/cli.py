@@ -11,8 +11,7 @@ import importlib
 import logging
 import sys
 
-from usplat_dr import __version__, _threads, portable
-from usplat_dr.jobs import DEMO_MINUTES
+from usplat_dr import DEMO_MINUTES, __version__, _threads, portable
 
 #: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
 COMMANDS = {

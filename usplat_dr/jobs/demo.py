@@ -7,7 +7,7 @@ from the shipped (a) to show that training works, and write a report folder (``r
 with PNGs: the verdict chart, novel views next to ground truth, depth maps, training curves,
 worst cases, speed against accuracy, and where the numbers came from).
 
-Budgets: ``full`` (``usplat_dr.jobs.DEMO_MINUTES`` minutes on a 2-core CPU, by host;
+Budgets: ``full`` (``usplat_dr.DEMO_MINUTES`` minutes on a 2-core CPU, by host;
 BENCHMARKS.md) and ``quick`` (a
 minute or two, for CI).
 The multi-seed verdict (fine-tuning seeds x held-out scenes) is
