@@ -12,6 +12,12 @@ gradients (restored before every call), alternating the two calls the trainer ma
 (``group_grad_norms`` then ``torch.nn.utils.clip_grad_norm_``) and
 ``usplat_dr.training.optim.clip_gradients``.
 
+``--scatter``: instead, the whole training step (``Trainer.train_step``) with the rasteriser's
+backward adding each pair's gradients as one packet record (``backward_scatter="packet"``, the
+LLVM default) against ten scalar scatter-adds (``"lanes"``), two trainers from the same seed on
+the same batches, interleaved step by step in ABBA order: medians, and how far the two loss
+curves drift apart (float summation order only: the largest step's difference, and the means').
+
 ``--awake on|off``: instead, one process of train/bench/cores.py's comparison: the current
 trainer's per-phase medians of ``--steps`` steps (after 3 warm-up steps) per variant, with the
 cores kept awake (``usplat_dr.training.cores.CoreKeeper``, for the whole process) or not, as one
@@ -146,6 +152,51 @@ def awake_medians(args) -> dict:
             keeper.stop()
 
 
+def scatter_ab(args) -> None:
+    """``--scatter``: the training step with the packet backward against the lanes one."""
+    from usplat_dr.model.decoder import DecoderSplatting
+    from usplat_dr.render import RasterSettings
+
+    print(f"threads={args.threads}, {args.steps} steps per configuration after 3 warm-up, "
+          f"medians (ms); CPU = process CPU time")
+    print("| variant | lanes ms (CPU ms) | packet ms (CPU ms) | packet / lanes | largest loss "
+          "difference (relative) | mean loss, packet / lanes - 1 |")
+    print("|---|---|---|---|---|---|")
+    for variant in args.variants:
+        pair = {}
+        # --scatter-control: "packet" runs the lanes backward too, so that the columns show
+        # how far two runs of the same code drift apart (2 threads: atomics' order)
+        modes = {"lanes": "lanes", "packet": "lanes" if args.scatter_control else "packet"}
+        for name, mode in modes.items():
+            tr = make_trainer(args.data, variant, args.threads)  # seeded: the same start
+            tr.model.decoder = DecoderSplatting(RasterSettings(sh_basis="mvsplat",
+                                                               backward_scatter=mode))
+            pair[name] = tr
+        batches = [pair["lanes"].batches.next() for _ in range(args.steps + 3)]
+        wall = {m: [] for m in pair}
+        cpu = {m: [] for m in pair}
+        losses = {m: [] for m in pair}
+        for i, batch in enumerate(batches):
+            # ABBA: the trainer that runs second in a step pays ~3-5% (measured: cache and
+            # allocator state), so the order alternates
+            order = list(pair.items()) if i % 2 == 0 else list(pair.items())[::-1]
+            for mode, tr in order:
+                w0, c0 = time.perf_counter(), time.process_time()
+                stats = tr.train_step(batch)
+                tr.step += 1
+                if i >= 3:
+                    wall[mode].append(1000 * (time.perf_counter() - w0))
+                    cpu[mode].append(1000 * (time.process_time() - c0))
+                losses[mode].append(stats["loss"])
+        med = {m: (statistics.median(wall[m]), statistics.median(cpu[m])) for m in pair}
+        drift = max(abs(a - b) / abs(b) for a, b in zip(losses["packet"], losses["lanes"]))
+        means = {m: statistics.fmean(v) for m, v in losses.items()}
+        print(f"| {variant} | {med['lanes'][0]:.0f} ({med['lanes'][1]:.0f}) | "
+              f"{med['packet'][0]:.0f} ({med['packet'][1]:.0f}) | "
+              f"{med['packet'][0] / med['lanes'][0]:.3f} | {drift:.1e} | "
+              f"{means['packet'] / means['lanes'] - 1:+.1e} |", flush=True)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="a synthetic training set (64x64)")
@@ -154,6 +205,10 @@ def main(argv=None) -> int:
     p.add_argument("--variants", nargs="+", default=["baseline", "full"])
     p.add_argument("--clip", type=int, default=0, metavar="N",
                    help="time the gradient norms and clipping alone, N times each")
+    p.add_argument("--scatter", action="store_true",
+                   help="the training step with the packet backward against the lanes one")
+    p.add_argument("--scatter-control", action="store_true",
+                   help="with --scatter: both trainers with the lanes backward (the noise)")
     p.add_argument("--awake", choices=["on", "off"],
                    help="one process of train/bench/cores.py: the current trainer with the "
                         "cores kept awake or not; medians per phase as JSON")
@@ -171,6 +226,9 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.ERROR)
     logging.getLogger("usplat_dr").setLevel(logging.ERROR)
 
+    if args.scatter:
+        scatter_ab(args)
+        return 0
     if args.clip:
         print(f"threads={args.threads}, medians of {args.clip} calls each (ms)")
         print("| variant | group_grad_norms + clip_grad_norm_ | clip_gradients | ratio |")
