@@ -9,7 +9,7 @@ import torch
 from tests.render.helpers import gradients
 from usplat_dr.render import RasterSettings, rasterize, rasterize_drjit
 from usplat_dr.render.composite import padded_count
-from usplat_dr.render.scenes import pixel_aligned_scene, random_scene
+from usplat_dr.render.scenes import isotropic_scene, pixel_aligned_scene, random_scene
 
 
 def test_batched_call_equals_per_image_calls(device):
@@ -157,6 +157,17 @@ def test_no_recompilation_for_new_camera_gaussians_or_near_far():
     nf.near, nf.far = nf.near * 0.5, nf.far * 3
     nf.background_color = torch.rand(1, 3)
     assert _kernel_hashes(lambda: _render_fwd_bwd(nf)) == reference, "near/far/background"
+
+
+def test_the_torch_entry_reuses_every_kernel_for_fresh_tensors_of_the_same_shapes():
+    # a second call with new tensors (new memory, new values) of the same shapes compiles
+    # nothing: the same kernel hashes as the first call's repeat (a data pointer, alignment or
+    # value baked into a kernel would change them)
+    scene = isotropic_scene(500, 32, sh_degree=3)
+    _render_fwd_bwd(scene)  # first call of these shapes: compiles
+    first = _kernel_hashes(lambda: _render_fwd_bwd(scene))
+    fresh = isotropic_scene(500, 32, sh_degree=3, seed=1)
+    assert _kernel_hashes(lambda: _render_fwd_bwd(fresh)) == first
 
 
 # ---- Invalid input ----

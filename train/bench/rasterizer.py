@@ -1,7 +1,9 @@
 """Benchmark the Dr.Jit rasteriser (a script, not a test: timings are never asserted).
 
 Scenes: pixel-aligned (2 H W Gaussians unprojected from two views at random depths, rendered
-from a third), 64x64 / 8,192, 128x128 / 32,768 and 256x256 / 131,072 Gaussians, SH degree 0.
+from a third), 64x64 / 8,192, 128x128 / 32,768 and 256x256 / 131,072 Gaussians, SH degree 0;
+and for the torch bridge also isotropic ones (``--isotropic N:SH ...``: random isotropic
+Gaussians in front of a camera at the origin, 256x256, ``render.scenes.isotropic_scene``).
 For each size: forward (outputs evaluated) and forward+backward (gradients w.r.t. all Gaussian
 inputs evaluated) through the torch entry point, after warm-up, runs interleaved, median wall and
 process CPU time; Dr.Jit's peak allocation for one forward+backward; the cold-start time (first
@@ -41,7 +43,7 @@ from usplat_dr.backend import module_for
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.pipeline import rasterize_drjit
 from usplat_dr.render.reference import render_ref
-from usplat_dr.render.scenes import pixel_aligned_scene
+from usplat_dr.render.scenes import isotropic_scene, pixel_aligned_scene
 
 ROOT = Path(__file__).resolve().parents[2]
 TARGETS = {64: (3.0, 8.0), 256: (30.0, 100.0)}  # ms (fwd, fwd+bwd), the targets set 2026-11-21
@@ -238,6 +240,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="torch and Dr.Jit threads (default: theirs, one per core); 1 is "
                              "how training runs (threads=1)")
+    parser.add_argument("--isotropic", nargs="*", default=["20000:3", "20000:0", "131072:0"],
+                        metavar="N:SH",
+                        help="bridge rows on isotropic scenes at 256x256 (N Gaussians, SH "
+                             "degree; render.scenes.isotropic_scene), beside the pixel-aligned "
+                             "sizes; none to skip")
     parser.add_argument("--torch-first", action="store_true",
                         help="import torch before usplat_dr, as users write (the default "
                         "imports usplat_dr first, which shortens torch's OpenMP spin)")
@@ -346,6 +353,20 @@ def main() -> None:
     print("| image | torch fwd ms | Dr.Jit fwd ms | bridge fwd ms | torch fwd+bwd ms | "
           "Dr.Jit fwd+bwd ms | bridge fwd+bwd ms | checks before | checks now |")
     print("|---|---|---|---|---|---|---|---|---|")
+    for spec in args.isotropic:
+        n, degree = (int(x) for x in spec.split(":"))
+        scene = isotropic_scene(n, 256, degree).to(args.device)
+        fwd, fwd_bwd = make_fns(scene, RasterSettings())
+        n_fwd, n_fwd_bwd = make_native_fns(scene, RasterSettings())
+        for _ in range(2):
+            for fn in (fwd, fwd_bwd, n_fwd, n_fwd_bwd):
+                fn()
+        t = time_interleaved({"fwd": fwd, "fwd_bwd": fwd_bwd, "native_fwd": n_fwd,
+                              "native_fwd_bwd": n_fwd_bwd}, args.runs)
+        f, fb, nf, nfb = t["fwd"], t["fwd_bwd"], t["native_fwd"], t["native_fwd_bwd"]
+        print(f"| isotropic {n:,}, SH {degree}, 256x256 | {f[0]:.2f} | {nf[0]:.2f} | "
+              f"{f[0] - nf[0]:+.2f} | {fb[0]:.2f} | {nfb[0]:.2f} | {fb[0] - nfb[0]:+.2f} | - | - |",
+              flush=True)
     print("\n".join(bridge_rows))
 
 

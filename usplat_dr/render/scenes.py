@@ -81,6 +81,31 @@ def orbit_cameras(num: int, radius: float, height: float, arc_degrees: float = 3
     return look_at(eye, tgt, up)
 
 
+def isotropic_scene(num_gaussians: int, size: int = 256, sh_degree: int = 0,
+                    seed: int = 0) -> GaussianScene:
+    """Random isotropic Gaussians in front of a camera at the origin looking down +z: a scene
+    unlike the pixel-aligned one (few pixels per Gaussian, one view), as a user writes one.
+    Centres ``normal(0, 1) * (1, 1, 0.6) + (0, 0, 4)``, covariance 0.0009 I, opacity 0.6,
+    random SH coefficients; focal 1 (normalised), near 0.5, far 100, ``size`` x ``size``.
+
+    Examples:
+        >>> s = isotropic_scene(100, size=32)
+        >>> s.means.shape, s.image_shape
+        (torch.Size([1, 100, 3]), (32, 32))
+    """
+    gen = torch.Generator().manual_seed(seed)
+    n = num_gaussians
+    means = torch.randn(n, 3, generator=gen) * torch.tensor([1.0, 1.0, 0.6]) \
+        + torch.tensor([0.0, 0.0, 4.0])
+    return GaussianScene(
+        extrinsics=torch.eye(4)[None], intrinsics=normalized_intrinsics(1.0, 1.0)[None],
+        near=torch.tensor([0.5]), far=torch.tensor([100.0]), image_shape=(size, size),
+        background_color=torch.zeros(1, 3), means=means[None],
+        covariances=(0.0009 * torch.eye(3)).expand(1, n, 3, 3).clone(),
+        sh_coefficients=torch.rand(1, n, 3, (sh_degree + 1) ** 2, generator=gen),
+        opacities=torch.full((1, n), 0.6))
+
+
 def pixel_aligned_scene(height: int, width: int, batch: int = 1, seed: int = 0,
                         sh_degree: int = 0, opacity_range=(0.2, 0.9), scale_range=(0.3, 1.2),
                         depth_range=(1.0, 10.0), focal: float = 1.0) -> GaussianScene:
