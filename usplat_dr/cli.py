@@ -15,10 +15,12 @@ from usplat_dr import DEMO_MINUTES, __version__, _threads, portable
 
 #: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
 COMMANDS = {
-    "doctor": ("doctor", "report versions, libLLVM, backends, GPU; exit 1 on problems"),
-    "render-demo": ("render_demo",
-                    "render a procedural Gaussian scene from several cameras to PNGs"),
-    "params": ("params", "parameter count of a UniqueSplat configuration, per part"),
+    "demo": ("demo", ("the main job: synthetic data, train (a) and (c), evaluate, write a "
+                      f"report ({DEMO_MINUTES} minutes on 2 CPU cores)")),
+    "synth": ("synth", ("render procedural scenes with known geometry (Mitsuba) into the "
+                        "field's chunk format, with evaluation and stress splits")),
+    "import": ("import_scene", ("a COLMAP model or a nerfstudio transforms.json (and its "
+                                "images) into the chunk format, with an evaluation index")),
     "train": ("train", ("train UniqueSplat (any variant) with the field's recipe; also under "
                         "torchrun (DistributedDataParallel)")),
     "eval": ("evaluate", ("evaluate a trained model with the field's protocol (per-scene CSV, "
@@ -31,17 +33,15 @@ COMMANDS = {
                       "depth/opacity; or a 3DGS PLY")),
     "export-ply": ("export_ply",
                    "the Gaussians predicted for one target view, as a standard 3DGS PLY"),
-    "demo": ("demo", ("the main job: synthetic data, train (a) and (c), evaluate, write a "
-                      f"report ({DEMO_MINUTES} minutes on 2 CPU cores)")),
     "bench": ("bench", ("speed against accuracy: train (or reuse) size presets x variants on "
                         "the demo's data, measure time per view, memory, Gaussians and "
                         "accuracy; CSV + chart in OUT/bench")),
-    "synth": ("synth", ("render procedural scenes with known geometry (Mitsuba) into the "
-                        "field's chunk format, with evaluation and stress splits")),
-    "import": ("import_scene", ("a COLMAP model or a nerfstudio transforms.json (and its "
-                                "images) into the chunk format, with an evaluation index")),
     "fit": ("fit_scene", ("per-scene Gaussian optimisation on a synthetic scene (renderer "
                           "check): held-out PSNR/SSIM and a PNG of renders")),
+    "params": ("params", "parameter count of a UniqueSplat configuration, per part"),
+    "render-demo": ("render_demo",
+                    "render a procedural Gaussian scene from several cameras to PNGs"),
+    "doctor": ("doctor", "report versions, libLLVM, backends, GPU; exit 1 on problems"),
 }
 
 

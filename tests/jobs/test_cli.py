@@ -17,6 +17,24 @@ import usplat_dr
 from usplat_dr.cli import main
 
 
+def test_every_option_of_every_command_has_help_and_commands_run_in_workflow_order():
+    import argparse
+
+    from usplat_dr.cli import COMMANDS
+
+    missing = []
+    for name, (module, _) in COMMANDS.items():
+        parser = argparse.ArgumentParser()
+        importlib.import_module(f"usplat_dr.jobs.{module}").add_arguments(parser)
+        missing += [f"usplat {name} {'/'.join(a.option_strings) or a.dest}"
+                    for a in parser._actions
+                    if not a.help and not isinstance(a, argparse._HelpAction)]
+    assert not missing, missing
+    # what a user does first comes first in `usplat --help`
+    assert list(COMMANDS) == ["demo", "synth", "import", "train", "eval", "render", "view",
+                              "export-ply", "bench", "fit", "params", "render-demo", "doctor"]
+
+
 def test_doctor_reports_and_succeeds_here():
     r = subprocess.run([sys.executable, "-m", "usplat_dr", "doctor"], capture_output=True,
                        text=True, timeout=300, check=False)

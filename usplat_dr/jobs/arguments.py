@@ -3,6 +3,12 @@
 import argparse
 from pathlib import Path
 
+#: ``--device``'s help, the same for every command that takes one.
+DEVICE_HELP = ("cpu: torch and Dr.Jit's LLVM backend on the CPU; cuda: a GPU (Dr.Jit's CUDA "
+               "backend)")
+#: ``--dataset``'s help, the same for every command that takes one.
+DATASET_HELP = "the data's kind (its cameras' conventions and default near/far)"
+
 #: ``--checkpoint``'s help, the same for every command that takes one (one loader behind them:
 #: ``usplat_dr.training.checkpoints.load``).
 CHECKPOINT_HELP = ("a shipped checkpoint's name (tiny_full, tiny_baseline, ...: "

@@ -47,7 +47,7 @@ from usplat_dr.evaluation import depth_metrics, nan_mean, synthetic_indices
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.io import atomic_open, write_json
-from usplat_dr.jobs.arguments import non_negative_int
+from usplat_dr.jobs.arguments import DEVICE_HELP, non_negative_int
 from usplat_dr.jobs.budgets import BUDGETS, ensure_data, training_config
 from usplat_dr.jobs.report import bench_chart, bench_table
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
@@ -467,7 +467,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also measure this checkpoint (a file or a shipped name), labelled "
                    "e.g. 'tiny (c) budget' for tiny:c:budget=...; repeatable")
     p.add_argument("--quick", action="store_true", help="the demo's quick budget (CI)")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                   help=DEVICE_HELP)
     p.add_argument("--jobs", type=non_negative_int, default=0,
                    help="Mitsuba worker processes (0: auto)")
     p.add_argument("--threads", type=non_negative_int, default=0,

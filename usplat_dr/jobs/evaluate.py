@@ -10,7 +10,13 @@ import torch
 
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
-from usplat_dr.jobs.arguments import CHECKPOINT_HELP, add_budget_arguments, out_folder
+from usplat_dr.jobs.arguments import (
+    CHECKPOINT_HELP,
+    DATASET_HELP,
+    DEVICE_HELP,
+    add_budget_arguments,
+    out_folder,
+)
 from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
 from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import checkpoint_provenance, load
@@ -22,7 +28,8 @@ log = logging.getLogger(__name__)
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, help=CHECKPOINT_HELP)
     p.add_argument("--data", required=True, help="dataset root (chunk format)")
-    p.add_argument("--dataset", default="synth", choices=DATASETS)
+    p.add_argument("--dataset", default="synth", choices=DATASETS,
+                   help=DATASET_HELP)
     p.add_argument("--index", nargs="+", metavar="SPLIT=PATH",
                    help="evaluation index JSON(s); default: the synthetic set's own splits")
     p.add_argument("--splits", nargs="+", help="synthetic splits to evaluate (default: all)")
@@ -40,8 +47,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "float32; train/bench/README.md, \"bfloat16 inference\")")
     p.add_argument("--lpips-vgg", help="torchvision vgg16-397923af.pth (for LPIPS)")
     p.add_argument("--lpips-lin", help="lpips/weights/v0.1/vgg.pth (for LPIPS)")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    p.add_argument("--out", type=out_folder, default="outputs/eval")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                   help=DEVICE_HELP)
+    p.add_argument("--out", type=out_folder, default="outputs/eval",
+                   help="the results folder (summary.json, per_scene.csv, renders)")
 
 
 def warn_slow_bfloat16() -> None:

@@ -15,8 +15,10 @@ from usplat_dr.model.ply import write_ply
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_example_arguments(p)
     p.add_argument("--target", type=non_negative_int, default=0, help="target view index")
-    p.add_argument("--min-opacity", type=float, default=0.0)
-    p.add_argument("--out", type=out_file, default="outputs/export/gaussians.ply")
+    p.add_argument("--min-opacity", type=float, default=0.0,
+                   help="leave out Gaussians below this opacity")
+    p.add_argument("--out", type=out_file, default="outputs/export/gaussians.ply",
+                   help="the PLY file to write")
 
 
 def run(args: argparse.Namespace) -> int:

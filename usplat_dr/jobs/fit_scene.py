@@ -22,13 +22,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "is rendered on the fly from --kind/--seed/--frames/--resolution")
     p.add_argument("--stage", default="test", help="stage folder of --data")
     p.add_argument("--scene", help="scene key in --data (default: the first)")
-    p.add_argument("--kind", default="indoor", choices=KINDS)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--frames", type=at_least(4), default=24)
+    p.add_argument("--kind", default="indoor", choices=KINDS,
+                   help="the synthetic scene's kind")
+    p.add_argument("--seed", type=int, default=0, help="the synthetic scene's seed")
+    p.add_argument("--frames", type=at_least(4), default=24,
+                   help="frames rendered (some held out: training.per_scene.split_views)")
     p.add_argument("--resolution", type=at_least(4), nargs=2, default=[64, 64],
-                   metavar=("H", "W"))
+                   metavar=("H", "W"), help="the rendered frames' size")
     p.add_argument("--spp", type=positive_int, default=256, help="Mitsuba samples per pixel")
-    p.add_argument("--iterations", type=positive_int, default=1500)
+    p.add_argument("--iterations", type=positive_int, default=1500,
+                   help="Adam steps of the fit")
     p.add_argument("--out", type=out_folder, default="outputs/fit",
                    help="folder for the PNG and JSON")
 

@@ -7,8 +7,10 @@ from usplat_dr.model.uniquesplat import PAPER_PARAMETERS, PRESETS, UniqueSplat
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", default="paper", choices=sorted(PRESETS))
-    p.add_argument("--variant", default="all", choices=["all", "baseline", "agnostic", "full"])
+    p.add_argument("--preset", default="paper", choices=sorted(PRESETS),
+                   help="the model size preset")
+    p.add_argument("--variant", default="all", choices=["all", "baseline", "agnostic", "full"],
+                   help="(a) baseline, (b) agnostic, (c) full, or all three")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -30,6 +30,8 @@ from usplat_dr.io.images import colorize_depth, save_png
 from usplat_dr.io.video import write_video
 from usplat_dr.jobs.arguments import (
     CHECKPOINT_HELP,
+    DATASET_HELP,
+    DEVICE_HELP,
     add_budget_arguments,
     at_least,
     out_folder,
@@ -53,14 +55,16 @@ def add_example_arguments(p: argparse.ArgumentParser, data_required: bool = True
     """The arguments naming a model and one evaluation example (``render``, ``export-ply``)."""
     p.add_argument("--checkpoint", required=True, help=CHECKPOINT_HELP)
     p.add_argument("--data", required=data_required, help="dataset root (chunk format)")
-    p.add_argument("--dataset", default="synth", choices=DATASETS)
+    p.add_argument("--dataset", default="synth", choices=DATASETS,
+                   help=DATASET_HELP)
     p.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
                    "standard split)")
     p.add_argument("--scene", help="scene key (default: the first of the index)")
     add_image_shape_argument(p)
     add_trust_argument(p)
     add_budget_arguments(p)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                   help=DEVICE_HELP)
 
 
 def add_trust_argument(p: argparse.ArgumentParser) -> None:

@@ -35,7 +35,7 @@ import torch
 from usplat_dr.data.types import model_inputs
 from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz, quat_xyzw_to_matrix
 from usplat_dr.io.images import colorize_depth, to_uint8
-from usplat_dr.jobs.arguments import CHECKPOINT_HELP
+from usplat_dr.jobs.arguments import CHECKPOINT_HELP, DATASET_HELP, DEVICE_HELP
 from usplat_dr.jobs.render_video import (
     DATASETS,
     add_image_shape_argument,
@@ -508,7 +508,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "tiny_full, else none)")
     data = p.add_argument_group("context views from a dataset")
     data.add_argument("--data", help="dataset root (chunk format)")
-    data.add_argument("--dataset", default="synth", choices=DATASETS)
+    data.add_argument("--dataset", default="synth", choices=DATASETS,
+                      help=DATASET_HELP)
     data.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
                       "standard split)")
     data.add_argument("--scene", help="scene key (default: the first of the index)")
@@ -517,7 +518,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "rasteriser at --image-shape, default 256 256)")
     add_image_shape_argument(p)
     add_trust_argument(p)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help=DEVICE_HELP)
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (0.0.0.0: every network interface)")
     p.add_argument("--port", type=int, default=8080,
