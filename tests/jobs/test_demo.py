@@ -146,8 +146,8 @@ def demo_results(out: Path, stable: dict):
     """A ``DemoResults`` of made-up numbers, with the files ``write_report`` reads."""
     from usplat_dr.evaluation.verdict import Comparison
     from usplat_dr.jobs.report import DemoResults
-    from usplat_dr.training.budgets import BUDGETS
     from usplat_dr.training.checkpoints import BASE
+    from usplat_dr.training.recipes import RECIPES
 
     (out / "bench_demo").mkdir(parents=True)
     (out / "bench_demo" / "bench.md").write_text("| the demo's bench |\n")
@@ -171,7 +171,7 @@ def demo_results(out: Path, stable: dict):
     manifest = {n: {"name": n, "steps": 100, "sha256": "0123456789abcdef0123", "data": "synth"}
                 for n in (BASE, *SHIPPED.values())}
     return DemoResults(
-        out=out, budget=BUDGETS["quick"], budget_name="quick", summaries=summaries,
+        out=out, recipe=RECIPES["quick"], recipe_name="quick", summaries=summaries,
         timings={"total": 99.6}, worst={"full": {"wide": out / "w.png", "wide_psnr": 14.25}},
         bench={"pruning": {"cull": {"worst_psnr_change_db": -0.001, "kept_fraction": 0.8,
                                     "safe": True}}},

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from usplat_dr.io import write_json
 from usplat_dr.training import train
-from usplat_dr.training.budgets import BUDGETS, training_config
+from usplat_dr.training.recipes import RECIPES, training_config
 from usplat_dr.training.run_log import curves, stability
 
 
@@ -33,9 +33,9 @@ def main() -> None:
     if not (data / "demo.json").is_file():
         raise SystemExit(f"--data {data}: no demo data set there; run `usplat demo` (or "
                          f"`usplat bench`) first, or pass --data")
-    budget = BUDGETS["full"]
+    recipe = RECIPES["full"]
     run = Path(args.out) / f"train_{args.preset}_{args.variant}"
-    cfg = training_config(data, run, budget, args.variant, args.preset)
+    cfg = training_config(data, run, recipe, args.variant, args.preset)
     cfg["train"].update(steps=args.steps, checkpoint_every=max(args.steps // 10, 1),
                         validate_every=args.steps)
     train(cfg, resume=True)

@@ -1,3 +1,3 @@
 """One module per ``usplat`` command (``add_arguments(parser)`` and ``run(args) -> int``; the
-table is ``usplat_dr.cli.COMMANDS``), and what several of them share (``budgets``,
-``report``, ``arguments``). Jobs import anything below them; nothing imports jobs."""
+table is ``usplat_dr.cli.COMMANDS``), and what several of them share (``report``,
+``arguments``). Jobs import anything below them; nothing imports jobs."""

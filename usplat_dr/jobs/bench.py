@@ -1,7 +1,7 @@
 """``usplat bench``: speed against accuracy, measured in one run on one machine.
 
 Trains (or reuses) each configuration on the demo's synthetic training set (``usplat demo``'s
-data and budget; the demo's own runs are reused), then measures on the held-out scenes of the
+data and recipe; the demo's own runs are reused), then measures on the held-out scenes of the
 standard split, interleaving configurations scene by scene so that a busy machine slows all of
 them alike:
 
@@ -48,7 +48,6 @@ from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.io import atomic_open, write_json
 from usplat_dr.jobs.arguments import DEVICE_HELP, non_negative_int
-from usplat_dr.jobs.budgets import BUDGETS, ensure_data, training_config
 from usplat_dr.jobs.report import bench_chart, bench_table
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS, StudyHooks
@@ -56,6 +55,7 @@ from usplat_dr.render.prune import PRUNES
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import BASE, load, load_models, shipped_checkpoints
 from usplat_dr.training.distributed import set_threads
+from usplat_dr.training.recipes import RECIPES, ensure_data, training_config
 
 log = logging.getLogger(__name__)
 
@@ -147,10 +147,10 @@ class PeakMemory:
         return False
 
 
-def train_configs(out: Path, budget: str, configs, seed: int = 0, jobs: int = 0) -> dict:
+def train_configs(out: Path, recipe: str, configs, seed: int = 0, jobs: int = 0) -> dict:
     """Train what is missing (a finished run is reused; an interrupted one resumes)."""
-    ensure_data(out, budget, seed, jobs)
-    b = BUDGETS[budget]
+    ensure_data(out, recipe, seed, jobs)
+    b = RECIPES[recipe]
     try:  # the tiny preset fine-tunes from the shipped (a), as the demo does
         base = shipped_checkpoints().get(BASE)
     except FileNotFoundError:
@@ -417,19 +417,19 @@ def write_results(rows: list[dict], model_size: int, out: Path) -> dict:
     return decision
 
 
-def run_bench(out: str | Path = "outputs/demo", budget: str = "full", configs=DEFAULT_CONFIGS,
+def run_bench(out: str | Path = "outputs/demo", recipe: str = "full", configs=DEFAULT_CONFIGS,
               render_sizes=None, prunes=None, device: str = "cpu", seed: int = 0,
               jobs: int = 0, fractions=(), rank_by=RANKINGS, splits=("standard",),
               checkpoints: dict | None = None) -> dict:
     """Train what is missing, measure, write ``out/bench/``; returns the decisions."""
-    if budget not in BUDGETS:
-        raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {budget!r}")
+    if recipe not in RECIPES:
+        raise ValueError(f"recipe must be one of {sorted(RECIPES)}, got {recipe!r}")
     out = Path(out)
-    size = BUDGETS[budget].size
+    size = RECIPES[recipe].size
     if render_sizes and max(render_sizes) > size:
         raise ValueError(f"render sizes {render_sizes} exceed the data's {size}x{size} (the "
                          f"ground truth would be upsampled); use sizes <= {size}")
-    runs = train_configs(out, budget, configs, seed, jobs)
+    runs = train_configs(out, recipe, configs, seed, jobs)
     models = load_models(runs, device)
     for config, path in (checkpoints or {}).items():  # --checkpoint PRESET:VARIANT:TAG=PATH
         models[config] = load(path, device)

@@ -7,7 +7,7 @@ from the shipped (a) to show that training works, and write a report folder (``r
 with PNGs: the verdict chart, novel views next to ground truth, depth maps, training curves,
 worst cases, speed against accuracy, and where the numbers came from).
 
-Budgets: ``full`` (``usplat_dr.DEMO_MINUTES`` minutes on a 2-core CPU, by host;
+Recipes: ``full`` (``usplat_dr.DEMO_MINUTES`` minutes on a 2-core CPU, by host;
 BENCHMARKS.md) and ``quick`` (a
 minute or two, for CI).
 The multi-seed verdict (fine-tuning seeds x held-out scenes) is
@@ -31,7 +31,6 @@ from usplat_dr.evaluation.verdict import chart as verdict_chart
 from usplat_dr.evaluation.verdict import compare
 from usplat_dr.jobs.arguments import non_negative_int
 from usplat_dr.jobs.bench import BenchConfig, measure, write_results
-from usplat_dr.jobs.budgets import BUDGETS, PRESET, Budget, ensure_data, training_config
 from usplat_dr.jobs.report import DemoResults, write_report
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import (
@@ -43,6 +42,7 @@ from usplat_dr.training.checkpoints import (
     registered_verdict,
     shipped_checkpoints,
 )
+from usplat_dr.training.recipes import PRESET, RECIPES, RunRecipe, ensure_data, training_config
 from usplat_dr.training.run_log import curves, stability
 
 #: The Gaussian budgets of the demo's speed/accuracy bench (fractions of the Gaussians, each
@@ -67,12 +67,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int = 0,
+def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int = 0,
              jobs: int = 0, checkpoints: Path = CHECKPOINTS) -> Path:
     """Run the whole job; returns the path of ``report.md``."""
-    if budget not in BUDGETS:
-        raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {budget!r}")
-    b = BUDGETS[budget]
+    if recipe not in RECIPES:
+        raise ValueError(f"recipe must be one of {sorted(RECIPES)}, got {recipe!r}")
+    b = RECIPES[recipe]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     shipped = shipped_checkpoints(checkpoints)
@@ -81,7 +81,7 @@ def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int =
         raise FileNotFoundError(f"the manifest in {checkpoints} lacks {missing}")
     t_start = time.perf_counter()
     timings = {}
-    if ensure_data(out, budget, seed, jobs):
+    if ensure_data(out, recipe, seed, jobs):
         timings["synthetic data"] = time.perf_counter() - t_start
     data = out / "data"
     dataset = {"name": "synth", "roots": [str(data)], "image_shape": [b.size, b.size]}
@@ -133,7 +133,7 @@ def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int =
     timings["total"] = time.perf_counter() - t_start
     manifest = {e["name"]: e for e in json.loads((checkpoints / "manifest.json").read_text())}
     report = write_report(DemoResults(
-        out=out, budget=b, budget_name=budget, summaries=summaries, timings=timings,
+        out=out, recipe=b, recipe_name=recipe, summaries=summaries, timings=timings,
         worst=worst, bench=bench, stable={v: stability(r) for v, r in runs.items()},
         verdict=verdict, tuned=tuned, provenance=provenance([data]), allocation=allocation,
         manifest={n: manifest[n] for n in (BASE, *SHIPPED.values(), *BUDGETED.values())},
@@ -142,7 +142,7 @@ def run_demo(out: str | Path = "outputs/demo", budget: str = "full", seed: int =
     return report
 
 
-def worst_cases(out: Path, b: Budget, variant: str, checkpoint: Path) -> dict:
+def worst_cases(out: Path, b: RunRecipe, variant: str, checkpoint: Path) -> dict:
     """Per split, the comparison sheet of the scene with the lowest PSNR (from the shipped
     model's evaluation ``per_scene.csv``): ``{split: png path, split + "_psnr": its PSNR}``."""
     with open(out / f"eval_shipped_{variant}" / "per_scene.csv") as f:

@@ -14,15 +14,9 @@ from usplat_dr.evaluation.verdict import Comparison
 from usplat_dr.evaluation.verdict import table as verdict_table
 from usplat_dr.evaluation.view_specificity import LIVE_BOUND_DB
 from usplat_dr.io import atomic_open
-from usplat_dr.jobs.budgets import (
-    BASE,
-    BUDGETED,
-    FINETUNE_LR,
-    PRESET,
-    SHIPPED,
-    VARIANTS,
-    Budget,
-)
+from usplat_dr.model.uniquesplat import VARIANTS
+from usplat_dr.training.checkpoints import BASE, BUDGETED, SHIPPED
+from usplat_dr.training.recipes import FINETUNE_LR, PRESET, RunRecipe
 from usplat_dr.training.run_log import GRAD_LABELS
 
 
@@ -84,8 +78,8 @@ class DemoResults:
     """What the demo's ``report.md`` reports: the results of its steps (``run_demo``)."""
 
     out: Path  # the demo's folder: report.md goes there; renders and bench tables are read there
-    budget: Budget
-    budget_name: str  # "full" or "quick"
+    recipe: RunRecipe
+    recipe_name: str  # "full" or "quick"
     summaries: dict  # "base" and each variant's shipped checkpoint -> evaluate()'s summary
     timings: dict  # stage -> seconds
     worst: dict  # variant -> worst_cases(): per split the worst scene's sheet and its PSNR
@@ -117,9 +111,9 @@ def write_report(results: DemoResults) -> Path:
 
 def intro_lines(r: DemoResults) -> list[str]:
     """The title and what the demo did."""
-    b = r.budget
+    b = r.recipe
     return ["# usplat-dr demo report", "",
-            (f"Budget `{r.budget_name}`: {b.test_scenes} fresh held-out scenes rendered by "
+            (f"Recipe `{r.recipe_name}`: {b.test_scenes} fresh held-out scenes rendered by "
              f"Mitsuba ({b.frames} frames, {b.size}x{b.size}; a seed none of the checkpoints was "
              f"trained or tested on), the shipped `{PRESET}` checkpoints evaluated on them with "
              f"the field's protocol, and a brief fine-tuning ({b.steps} steps on "
@@ -223,7 +217,7 @@ def worst_case_lines(r: DemoResults) -> list[str]:
 def fine_tuning_lines(r: DemoResults) -> list[str]:
     """The brief fine-tuning: accuracy before and after, the training curves, and the
     gradient norms' stability (``stability_lines``)."""
-    b = r.budget
+    b = r.recipe
     lines = ["## Fine-tuning briefly from the shipped (a)", "",
              (f"{b.steps} steps of (a) and (c) from `{BASE}` on the demo's {b.train_scenes} "
               f"training scenes (learning rate {FINETUNE_LR:g}, depth supervision as shipped; "
@@ -245,7 +239,7 @@ def speed_lines(r: DemoResults) -> list[str]:
     lines = ["## Speed against accuracy", "",
              ("The shipped (a) continued and (c), measured by `usplat bench`'s code on the "
               "standard split: Gaussian budgets (pruning per target before rasterising) at "
-              f"{r.budget.size}x{r.budget.size} and a smaller render size."), "",
+              f"{r.recipe.size}x{r.recipe.size} and a smaller render size."), "",
              "![speed against accuracy](bench_demo/bench.png)", "",
              (r.out / "bench_demo" / "bench.md").read_text().rstrip(), "",
              ("Pruning (worst PSNR change over the models, mean fraction of Gaussians kept; "

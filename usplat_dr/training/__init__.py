@@ -3,7 +3,7 @@ run folder, signals and cores a run holds (``run_folder``), the optimiser (``opt
 stream (``batches``), what a stage trains (``stages``), resuming (``resume``), validation
 (``validation``), the run log (``run_log``) and the loss (``losses``); the configuration's
 sections as objects (``config``), processes and RNG state (``distributed``), checkpoint files
-and the shipped ones (``checkpoints``), the demo's run recipes (``budgets``), and per-scene
+and the shipped ones (``checkpoints``), the demo's run recipes (``recipes``), and per-scene
 Gaussian optimisation (``per_scene``, ``usplat fit``)."""
 
 from usplat_dr.training.distributed import RankFailed

@@ -1,5 +1,5 @@
-"""The demo's run recipe, shared by ``usplat demo``, ``usplat bench`` and the studies in
-``train/studies/``: the budgets (``Budget``, ``BUDGETS``: data, fine-tuning steps), the size
+"""The demo's run recipes, shared by ``usplat demo``, ``usplat bench`` and the studies in
+``train/studies/``: the recipes (``RunRecipe``, ``RECIPES``: data, fine-tuning steps), the size
 preset, the training run's config (``training_config``) and the synthetic data
 (``ensure_data``). The shipped checkpoints the runs start from are
 ``usplat_dr.training.checkpoints``'s registry (``BASE``, ``SHIPPED``)."""
@@ -16,7 +16,10 @@ from usplat_dr.data.synth import synthesize
 
 
 @dataclass(frozen=True)
-class Budget:
+class RunRecipe:
+    """How much a demo run does: its data and its fine-tuning steps ("recipe", not "budget":
+    a Gaussian budget is ``usplat_dr.model.budget.GaussianBudget``)."""
+
     train_scenes: int  # the brief fine-tuning's training set
     test_scenes: int  # fresh held-out scenes (a seed no checkpoint was trained or tested on)
     frames: int
@@ -26,11 +29,11 @@ class Budget:
     scratch_steps: int  # `usplat bench`'s presets without a shipped checkpoint: from scratch
 
 
-BUDGETS = {
-    "full": Budget(train_scenes=24, test_scenes=48, frames=24, size=64, steps=150, spp=64,
-                   scratch_steps=700),
-    "quick": Budget(train_scenes=3, test_scenes=3, frames=12, size=32, steps=4, spp=8,
-                    scratch_steps=12),
+RECIPES = {
+    "full": RunRecipe(train_scenes=24, test_scenes=48, frames=24, size=64, steps=150, spp=64,
+                      scratch_steps=700),
+    "quick": RunRecipe(train_scenes=3, test_scenes=3, frames=12, size=32, steps=4, spp=8,
+                       scratch_steps=12),
 }
 #: The demo's size preset: the smallest within 0.3 dB of the best in `usplat bench`
 #: (train/bench/README.md, "Speed against accuracy").
@@ -43,16 +46,16 @@ FINETUNE_LR = 2e-4
 CONFIG = "synthetic_tiny_depth.yaml"
 
 
-def training_config(data: Path, out: Path, budget: Budget, variant: str,
+def training_config(data: Path, out: Path, recipe: RunRecipe, variant: str,
                     preset: str = "tiny", init: Path | None = None) -> dict:
     """The demo's training run: with ``init`` (a trained (a)) the paper's fine-tuning
     protocol at ``FINETUNE_LR``; without, from scratch (``usplat bench``'s other presets)."""
-    gap_max = max(4, budget.frames // 3)
+    gap_max = max(4, recipe.frames // 3)
     start = ([f"model.init_from={init}", f"optimizer.lr={FINETUNE_LR}",
               "optimizer.warm_up_fraction=0.05"] if init else ["optimizer.lr=1e-3"])
-    steps = budget.steps if init else budget.scratch_steps
+    steps = recipe.steps if init else recipe.scratch_steps
     return load_config([CONFIG], [
-        f"dataset.roots=[{data}]", f"dataset.image_shape=[{budget.size},{budget.size}]",
+        f"dataset.roots=[{data}]", f"dataset.image_shape=[{recipe.size},{recipe.size}]",
         f"output_dir={out}", f"model.variant={variant}", f"model.preset={preset}",
         f"train.steps={steps}", f"train.checkpoint_every={max(steps // 4, 1)}",
         f"train.validate_every={steps}", "train.log_every=5", *start,
@@ -65,14 +68,14 @@ def training_config(data: Path, out: Path, budget: Budget, variant: str,
         f"dataset.view_sampler.initial_max_distance_between_context_views={gap_max}"])
 
 
-def ensure_data(out: Path, budget: str, seed: int = 0, jobs: int = 0) -> bool:
+def ensure_data(out: Path, recipe: str, seed: int = 0, jobs: int = 0) -> bool:
     """The demo's synthetic train and test sets in ``out/data`` (kept when they match
-    ``budget`` and ``seed``; else remade, and runs trained on older data removed). Returns
+    ``recipe`` and ``seed``; else remade, and runs trained on older data removed). Returns
     whether it rendered them."""
-    b = BUDGETS[budget]
+    b = RECIPES[recipe]
     data = out / "data"
     stamp = data / "demo.json"
-    spec = {"budget": budget, "seed": seed, **b.__dict__}
+    spec = {"recipe": recipe, "seed": seed, **b.__dict__}
     if stamp.is_file() and json.loads(stamp.read_text()) == spec:
         return False
     shutil.rmtree(data, ignore_errors=True)
