@@ -159,6 +159,14 @@ def test_no_recompilation_for_new_camera_gaussians_or_near_far():
     assert _kernel_hashes(lambda: _render_fwd_bwd(nf)) == reference, "near/far/background"
 
 
+def test_the_backward_scatter_follows_the_backend():
+    assert RasterSettings().resolved_backward_scatter(is_cuda=False) == "packet"
+    assert RasterSettings().resolved_backward_scatter(is_cuda=True) == "lanes"
+    assert RasterSettings(backward_scatter="lanes").resolved_backward_scatter(False) == "lanes"
+    with pytest.raises(ValueError, match="for the LLVM backend"):
+        RasterSettings(backward_scatter="packet").resolved_backward_scatter(is_cuda=True)
+
+
 def test_the_torch_entry_reuses_every_kernel_for_fresh_tensors_of_the_same_shapes():
     # a second call with new tensors (new memory, new values) of the same shapes compiles
     # nothing: the same kernel hashes as the first call's repeat (a data pointer, alignment or

@@ -78,6 +78,11 @@ class RasterSettings:
         return RasterSettings(tile_size=REFERENCE_TILE, opacity_cull=False)
 
     def resolved_backward_scatter(self, is_cuda: bool) -> str:
+        """The backward's scatter on this backend: ``"packet"`` is LLVM's (its per-thread
+        copies are what ``ReduceMode.Expand`` means there; untested on CUDA, so refused)."""
+        if self.backward_scatter == "packet" and is_cuda:
+            raise ValueError("backward_scatter='packet' is for the LLVM backend (CPU); on CUDA "
+                             "use 'lanes' or None")
         if self.backward_scatter is not None:
             return self.backward_scatter
         return "lanes" if is_cuda else "packet"
