@@ -22,11 +22,9 @@ difference from the torch entry is the bridge's cost. Prints Markdown tables.
 import argparse
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 if "--torch-first" in sys.argv:  # users' order; usplat_dr cannot then shorten OpenMP's spin
@@ -40,6 +38,7 @@ import torch
 
 from usplat_dr import portable
 from usplat_dr.backend import module_for
+from usplat_dr.evaluation.timing import interleaved, machine_line
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.pipeline import rasterize_drjit
 from usplat_dr.render.reference import render_ref
@@ -181,16 +180,10 @@ def make_check_fns(scene) -> dict:
 
 
 def time_interleaved(fns: dict, runs: int) -> dict:
-    """Median wall and process CPU time (ms) of each function, runs interleaved."""
-    samples = {name: ([], []) for name in fns}
-    for _ in range(runs):
-        for name, fn in fns.items():
-            w0, c0 = time.perf_counter(), time.process_time()
-            fn()
-            samples[name][0].append((time.perf_counter() - w0) * 1e3)
-            samples[name][1].append((time.process_time() - c0) * 1e3)
-    return {name: (statistics.median(w), statistics.median(c), min(w))
-            for name, (w, c) in samples.items()}
+    """Median wall and process CPU time (ms) and best wall time of each function, runs
+    interleaved in ABBA order (``usplat_dr.evaluation.timing.interleaved``)."""
+    return {name: (t.wall, t.cpu, t.best)
+            for name, t in interleaved(fns, runs, warmup=0).items()}
 
 
 def kernel_breakdown(fn) -> list[tuple[float, int, str]]:
@@ -263,6 +256,7 @@ def main() -> None:
     load = os.getloadavg()
     llvm = ("none" if not dr.has_backend(dr.JitBackend.LLVM)
             else ".".join(map(str, dr.detail.llvm_version())))
+    print(machine_line())
     print(f"# {platform.node()} {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, load {load[0]:.2f}; drjit {dr.__version__}, "
           f"torch {torch.__version__}, libLLVM {llvm}, "
