@@ -35,6 +35,22 @@ def test_every_option_of_every_command_has_help_and_commands_run_in_workflow_ord
                               "export-ply", "bench", "fit", "params", "render-demo", "doctor"]
 
 
+@pytest.mark.parametrize("module", ["synth", "import_scene", "fit_scene"])
+def test_image_shape_is_the_one_name_and_resolution_still_works_with_a_line(module, caplog):
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    importlib.import_module(f"usplat_dr.jobs.{module}").add_arguments(parser)
+    required = {"synth": ["--out", "x"], "import_scene": ["--out", "x", "--colmap", "c"],
+                "fit_scene": []}[module]
+    with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.arguments"):
+        new = parser.parse_args([*required, "--image-shape", "8", "16"])
+        assert not caplog.records
+        old = parser.parse_args([*required, "--resolution", "8", "16"])
+    assert new.image_shape == old.image_shape == [8, 16]
+    assert "--resolution is now --image-shape" in caplog.text
+
+
 def test_doctor_reports_and_succeeds_here():
     r = subprocess.run([sys.executable, "-m", "usplat_dr", "doctor"], capture_output=True,
                        text=True, timeout=300, check=False)

@@ -1,7 +1,10 @@
 """Argument types shared by the jobs' parsers: a bad value is a usage error from argparse."""
 
 import argparse
+import logging
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 #: ``--device``'s help, the same for every command that takes one.
 DEVICE_HELP = ("cpu: torch and Dr.Jit's LLVM backend on the CPU; cuda: a GPU (Dr.Jit's CUDA "
@@ -71,6 +74,26 @@ def gaussians_argument(text: str) -> int | float:
         raise argparse.ArgumentTypeError(f"must be a count (an integer >= 1) or a fraction in "
                                          f"(0, 1] (0.3 or 30%), got {text!r}")
     return value
+
+
+class _RenamedOption(argparse.Action):
+    """Stores the value as usual; given under an old name (any option string but the first),
+    says once that the option was renamed."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if option_string is not None and option_string != self.option_strings[0]:
+            log.warning("%s is now %s (the same values); the old name is accepted for one "
+                        "more release", option_string, self.option_strings[0])
+        setattr(namespace, self.dest, values)
+
+
+def add_image_shape_option(p: argparse.ArgumentParser, default, help_text: str) -> None:
+    """``--image-shape H W`` (``args.image_shape``), the one name every command gives the
+    image size; ``--resolution``, its old name in ``synth``, ``import`` and ``fit``, still
+    works, with a line saying so."""
+    p.add_argument("--image-shape", "--resolution", dest="image_shape", type=at_least(4),
+                   nargs=2, default=default, metavar=("H", "W"), action=_RenamedOption,
+                   help=help_text)
 
 
 def add_budget_arguments(p: argparse.ArgumentParser) -> None:

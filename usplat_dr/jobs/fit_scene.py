@@ -13,13 +13,13 @@ from usplat_dr.data.synth import render_spec, scene_record
 from usplat_dr.data.synth.scenes import KINDS, make_spec
 from usplat_dr.io import write_json
 from usplat_dr.io.names import safe_stem
-from usplat_dr.jobs.arguments import at_least, out_folder, positive_int
+from usplat_dr.jobs.arguments import add_image_shape_option, at_least, out_folder, positive_int
 from usplat_dr.training.per_scene import FitCfg, fit, views_from_record
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", help="a synthetic dataset root (usplat synth); without it a scene "
-                   "is rendered on the fly from --kind/--seed/--frames/--resolution")
+                   "is rendered on the fly from --kind/--seed/--frames/--image-shape")
     p.add_argument("--stage", default="test", help="stage folder of --data")
     p.add_argument("--scene", help="scene key in --data (default: the first)")
     p.add_argument("--kind", default="indoor", choices=KINDS,
@@ -27,8 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="the synthetic scene's seed")
     p.add_argument("--frames", type=at_least(4), default=24,
                    help="frames rendered (some held out: training.per_scene.split_views)")
-    p.add_argument("--resolution", type=at_least(4), nargs=2, default=[64, 64],
-                   metavar=("H", "W"), help="the rendered frames' size")
+    add_image_shape_option(p, [64, 64], "the rendered frames' size")
     p.add_argument("--spp", type=positive_int, default=256, help="Mitsuba samples per pixel")
     p.add_argument("--iterations", type=positive_int, default=1500,
                    help="Adam steps of the fit")
@@ -47,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         key = f"{args.kind}_{args.seed}"
         spec = make_spec(args.kind, args.seed, args.frames)
-        images, depths, materials, k = render_spec(spec, tuple(args.resolution), spp=args.spp,
+        images, depths, materials, k = render_spec(spec, tuple(args.image_shape), spp=args.spp,
                                                    seed=args.seed)
         record = scene_record(key, spec, images, depths, materials, k)
     out = Path(args.out)

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from usplat_dr.data.importers import import_scene, read_colmap, read_nerfstudio
-from usplat_dr.jobs.arguments import at_least, non_negative_int, out_folder
+from usplat_dr.jobs.arguments import add_image_shape_option, non_negative_int, out_folder
 
 
 def positive_float(text: str) -> float:
@@ -37,8 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "<out>/evaluation_index_standard.json)")
     p.add_argument("--stage", default="test", choices=["train", "test"],
                    help="stage folder to write")
-    p.add_argument("--resolution", type=at_least(4), nargs=2, default=None, metavar=("H", "W"),
-                   help="resize every image to H x W (default: keep the size)")
+    add_image_shape_option(p, None, "resize every image to H x W (default: keep the size)")
     p.add_argument("--key", default=None, help="scene key (default: the source folder's name)")
     p.add_argument("--context", type=non_negative_int, nargs=2, default=None,
                    metavar=("I", "J"), help="context frames of the evaluation index (frames "
@@ -61,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("--images is for --colmap; transforms.json names its image files")
         scene = read_nerfstudio(Path(args.nerfstudio), args.ignore_distortion)
     summary = import_scene(scene, args.out, stage=args.stage,
-                           resolution=tuple(args.resolution) if args.resolution else None,
+                           resolution=tuple(args.image_shape) if args.image_shape else None,
                            key=args.key, context=tuple(args.context) if args.context else None,
                            near=args.near, far=args.far, fmt=args.format)
     if not args.quiet:

@@ -8,7 +8,13 @@ from pathlib import Path
 
 from usplat_dr.data.synth import synthesize
 from usplat_dr.data.synth.scenes import APPEARANCES, KINDS
-from usplat_dr.jobs.arguments import at_least, non_negative_int, out_folder, positive_int
+from usplat_dr.jobs.arguments import (
+    add_image_shape_option,
+    at_least,
+    non_negative_int,
+    out_folder,
+    positive_int,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -18,8 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "the train stage's into <out>/train/")
     p.add_argument("--scenes", type=positive_int, default=32, help="number of scenes")
     p.add_argument("--frames", type=at_least(3), default=24, help="frames per scene (>= 3)")
-    p.add_argument("--resolution", type=at_least(4), nargs=2, default=[64, 64],
-                   metavar=("H", "W"), help="image height and width")
+    add_image_shape_option(p, [64, 64], "image height and width")
     p.add_argument("--seed", type=int, default=None,
                    help="same seed, same bytes (whatever the stage). Default: 0 for --stage "
                    "test, 1 for --stage train, so that a train and a test set made without "
@@ -56,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     summary = synthesize(Path(args.out), scenes=args.scenes, frames=args.frames,
-                         resolution=tuple(args.resolution), seed=args.seed,
+                         resolution=tuple(args.image_shape), seed=args.seed,
                          kinds=tuple(args.kind), spp=args.spp, backend=args.backend,
                          stage=args.stage, previews=args.previews, progress=not args.quiet,
                          jobs=args.jobs or min(os.cpu_count() or 1, max(1, args.scenes // 4)),
