@@ -705,7 +705,7 @@ def test_environment_variables_set_wrong(tmp_path, variable, value):
     # a command: one line naming the variable and exit 2, or runs with libgomp's default
     cmd = subprocess.run([sys.executable, "-m", "usplat_dr.cli", "-q", "synth", "--out",
                           str(tmp_path / "out"), "--scenes", "1", "--frames", "3",
-                          "--resolution", "8", "8", "--spp", "1"], env=env, check=False,
+                          "--image-shape", "8", "8", "--spp", "1"], env=env, check=False,
                          capture_output=True, text=True, timeout=300)
     if variable == "USPLAT_THREADS":
         lines = [x for x in cmd.stderr.splitlines() if x.strip()]

@@ -330,7 +330,7 @@ def test_doctests_run():
 def test_usplat_import_command(truth, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["-q", "import", "--colmap", str(truth.root / "sparse" / "0"), "--out",
-                 str(out), "--resolution", "24", "32", "--key", "mine", "--context", "0",
+                 str(out), "--image-shape", "24", "32", "--key", "mine", "--context", "0",
                  "5", "--format", "jpeg"]) == 0
     assert "imported 6 views of 'mine'" in capsys.readouterr().out
     record = only_record(out)

@@ -132,17 +132,17 @@ def test_dataset_reads_a_synthetic_split(synth_set):
 
 def test_cli_synth(tmp_path, capsys):
     assert main(["-q", "synth", "--out", str(tmp_path), "--scenes", "1", "--frames", "4",
-                 "--resolution", "8", "8", "--spp", "1", "--kind", "object"]) == 0
+                 "--image-shape", "8", "8", "--spp", "1", "--kind", "object"]) == 0
     assert "scenes per evaluation split" in capsys.readouterr().out
     assert (tmp_path / "test" / "index.json").is_file()
-    for bad in (["--frames", "2"], ["--resolution", "2", "8"], ["--kind", "space"]):
+    for bad in (["--frames", "2"], ["--image-shape", "2", "8"], ["--kind", "space"]):
         with pytest.raises(SystemExit):
             main(["synth", "--out", str(tmp_path), *bad])
 
 
 def test_cli_synth_chunk_scenes(tmp_path):
     assert main(["-q", "synth", "--out", str(tmp_path), "--scenes", "3", "--frames", "4",
-                 "--resolution", "8", "8", "--spp", "1", "--kind", "object", "--stage", "train",
+                 "--image-shape", "8", "8", "--spp", "1", "--kind", "object", "--stage", "train",
                  "--chunk-scenes", "2", "--previews", "0"]) == 0
     chunks = sorted((tmp_path / "train").glob("*.torch"))
     assert [len(read_chunk(c)) for c in chunks] == [2, 1]
@@ -218,7 +218,7 @@ def test_view_dependent_set_is_deterministic_with_the_same_depths(synth_set, tmp
 
     def run(out, jobs):
         subprocess.run([sys.executable, "-m", "usplat_dr.cli", "-q", "synth", "--out", str(out),
-                        "--scenes", "3", "--frames", "8", "--resolution", "16", "20", "--seed",
+                        "--scenes", "3", "--frames", "8", "--image-shape", "16", "20", "--seed",
                         "7", "--spp", "4", "--appearance", "view-dependent", "--jobs",
                         str(jobs)], check=True, capture_output=True)
 

@@ -9,7 +9,7 @@ import pytest
 from usplat_dr.cli import main
 from usplat_dr.data.synth import DEFAULT_SEEDS, default_seed, metadata_folder, synthesize
 
-TINY = ["--scenes", "2", "--frames", "4", "--resolution", "8", "8", "--spp", "1",
+TINY = ["--scenes", "2", "--frames", "4", "--image-shape", "8", "8", "--spp", "1",
         "--kind", "object", "--previews", "1"]
 
 

@@ -132,7 +132,7 @@ def scene(tmp_path_factory):
 
 def import_argv(scene, out: Path) -> list[str]:
     return ["import", "--colmap", str(scene.root / "sparse" / "0"), "--out", str(out),
-            "--resolution", "64", "64"]
+            "--image-shape", "64", "64"]
 
 
 def test_a_killed_import_leaves_no_stage_or_all_of_it(scene, tmp_path):

@@ -11,9 +11,9 @@ from usplat_dr.cli import main
 def test_import_train_and_test_stages_then_train_and_evaluate(user_scene, tmp_path, capsys):
     sparse, data = str(user_scene.root / "sparse" / "0"), tmp_path / "mydata"
     assert main(["-q", "import", "--colmap", sparse, "--out", str(data), "--stage", "train",
-                 "--resolution", "64", "64"]) == 0
+                 "--image-shape", "64", "64"]) == 0
     assert main(["-q", "import", "--colmap", sparse, "--out", str(data), "--stage", "test",
-                 "--resolution", "64", "64", "--key", "heldout"]) == 0
+                 "--image-shape", "64", "64", "--key", "heldout"]) == 0
     # each stage's index beside its own metadata: the train import did not overwrite the
     # test stage's (evaluation reads the root's)
     test_index = json.loads((data / "evaluation_index_standard.json").read_text())

@@ -610,7 +610,7 @@ def import_scene(scene: ImportedScene, out: str | os.PathLike, stage: str = "tes
     shapes = {im.shape[:2] for im in images}
     if len(shapes) > 1:
         raise ValueError(f"the images of {scene.source} have different sizes "
-                         f"{sorted(shapes)}: pass --resolution H W")
+                         f"{sorted(shapes)}: pass --image-shape H W")
     key = key or scene_key(scene.source)
     cameras = matrices_to_cameras(torch.from_numpy(scene.extrinsics),
                                   torch.from_numpy(scene.intrinsics))
