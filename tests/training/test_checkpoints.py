@@ -73,6 +73,8 @@ def test_the_shipped_depth_range_is_that_of_the_scene_kinds_they_trained_on():
                 min(r[1] for r in ranges), max(r[1] for r in ranges)]
     for name in shipped_checkpoints():
         assert training_depth_range(name) == expected, name
+    # what render and view read: the loaded model carries it (one read of the file)
+    assert load_model(shipped_checkpoints()["tiny_baseline"])[0].trained_depth_range == expected
     # a room in the synthetic kinds' units passes; the same room in millimetres does not
     assert depth_range_warning(0.2, 20.0, expected) is None
     assert "far outside" in depth_range_warning(200.0, 20000.0, expected)

@@ -39,12 +39,7 @@ from usplat_dr.jobs.arguments import (
 )
 from usplat_dr.model.ply import write_ply
 from usplat_dr.model.predict import Prediction
-from usplat_dr.training.checkpoints import (
-    depth_range_warning,
-    load,
-    training_depth_range,
-    training_image_shape,
-)
+from usplat_dr.training.checkpoints import depth_range_warning, load, training_image_shape
 
 log = logging.getLogger(__name__)
 
@@ -118,9 +113,11 @@ def check_own_views(args: argparse.Namespace) -> None:
         raise ValueError("give both --near and --far, or neither")
 
 
-def own_views(args: argparse.Namespace) -> tuple[UserViews, float, float]:
+def own_views(args: argparse.Namespace, trained_range: list[float] | None = None
+              ) -> tuple[UserViews, float, float]:
     """The context views ``--images`` and ``--cameras`` name, cropped to ``image_shape``, and
-    near/far (``--near``/``--far``, else from the sparse points)."""
+    near/far (``--near``/``--far``, else from the sparse points), with a warning when they lie
+    far outside ``trained_range`` (the model's ``trained_depth_range``)."""
     check_own_views(args)
     views = context_views(args.images, read_cameras(args.cameras, args.ignore_distortion),
                           image_shape(args))
@@ -132,8 +129,7 @@ def own_views(args: argparse.Namespace) -> tuple[UserViews, float, float]:
     print(f"near/far {near:.4g} / {far:.4g} ("
           + ("--near/--far" if args.near is not None else
              "from the sparse points; --near/--far to set it") + ")")
-    warning = depth_range_warning(near, far, training_depth_range(args.checkpoint,
-                                                                  args.trust_checkpoint))
+    warning = depth_range_warning(near, far, trained_range)
     if warning:
         log.warning(warning)
     return views, near, far
@@ -231,7 +227,7 @@ def predict_own_views(model, args: argparse.Namespace) -> Prediction:
     """``--images`` and ``--cameras``: the model's ``Prediction`` for ``--path``, predicted
     ``PATH_CHUNK`` targets at a time, ``gaussians`` holding the first target's only (what
     ``run`` writes as a PLY)."""
-    views, near, far = own_views(args)
+    views, near, far = own_views(args, model.trained_depth_range)
     te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames,
                      tuple(views.images.shape[-2:]))
     if len(te) > MAX_PATH_CAMERAS:

@@ -575,8 +575,8 @@ def scene_from_args(args: argparse.Namespace):
         images, e, k = inputs.images[0], inputs.extrinsics[0], inputs.intrinsics[0]
         near, far = float(inputs.near[0].min()), float(inputs.far[0].max())
     else:
-        views, near, far = own_views(args)
         model = load(args.checkpoint, args.device, args.trust_checkpoint)
+        views, near, far = own_views(args, model.trained_depth_range)
         images, e, k = views.images, views.extrinsics, views.intrinsics
     models = {label(model, args.checkpoint): model}
     compare = compare_checkpoint(args)

@@ -257,6 +257,9 @@ class UniqueSplat(nn.Module):
         self._cached_weights = None
         #: Renders the predicted Gaussians (MVSplat's SH basis): ``render_targets``.
         self.decoder = DecoderSplatting()
+        #: [min near, max near, min far, max far] of the scenes the loaded checkpoint trained
+        #: on (``usplat_dr.training.checkpoints.load`` sets it), ``None`` when unknown.
+        self.trained_depth_range: list[float] | None = None
         #: Per-target pruning before rasterisation when not training (``forward``'s
         #: ``prune="auto"``); ``None`` renders every Gaussian. See ``usplat_dr.render.prune``.
         self.inference_prune = DEFAULT_INFERENCE_PRUNE
@@ -438,8 +441,7 @@ class UniqueSplat(nn.Module):
         kept = len(gaussians)
         if budget is not None:
             gaussians, kept = self._budgeted(gaussians, depth, aux, images.device, v, b, n,
-                                             budget.keep, budget.rank_by, budget.tau,
-                                             budget.seed)
+                                             budget)
         aux["kept"] = torch.full((b, n), kept, device=images.device)
         # The context views' depth maps [B, V, H, W] (the first target's where they differ
         # per target; MVSplat's depth: the distance along the pixel's unit ray, not z): what
@@ -456,10 +458,11 @@ class UniqueSplat(nn.Module):
         return out
 
     def _budgeted(self, gaussians: Gaussians, depth: DepthOutputs, aux: dict,
-                  device: torch.device, v: int, b: int, n: int, budget, rank_by: str | None,
-                  tau: float | None, seed: int) -> tuple[Gaussians, int]:
+                  device: torch.device, v: int, b: int, n: int,
+                  budget: GaussianBudget) -> tuple[Gaussians, int]:
         """``forward``'s budget: the kept Gaussians and K (model/budget.py); ``aux`` gets the
         scores and the kept mask (and, while training, the unbudgeted Gaussians)."""
+        rank_by = budget.rank_by
         if rank_by is None:
             rank_by = "learned" if self.importance is not None else "dither"
             # (once per model: a command's every forward would repeat it)
@@ -475,7 +478,7 @@ class UniqueSplat(nn.Module):
                              "(UniqueSplatCfg.importance=True, fine-tuned by usplat train "
                              "--config synthetic_tiny_budget.yaml); use rank_by='dither', "
                              "'opacity' or 'random'")
-        if budget_count(budget, len(gaussians)) >= len(gaussians):
+        if budget_count(budget.keep, len(gaussians)) >= len(gaussians):
             return gaussians, len(gaussians)  # everything kept: nothing computed, nothing changed
         logits = features = dither = None
         if rank_by == "learned":
@@ -488,8 +491,8 @@ class UniqueSplat(nn.Module):
         layout = (v, h, w, self.cfg.primary.gaussians_per_pixel)
         if rank_by in ("learned", "dither"):
             dither = dither_offsets(*layout, device=device)
-        chosen = apply_budget(gaussians, budget, rank_by, logits, features, self.importance,
-                              dither, layout, tau, seed)
+        chosen = apply_budget(gaussians, budget.keep, rank_by, logits, features,
+                              self.importance, dither, layout, budget.tau, budget.seed)
         if chosen.scores is not None:
             aux.update(importance=chosen.scores, kept_mask=chosen.kept_mask)
             if chosen.mask is not None:

@@ -184,6 +184,7 @@ def _built(path: Path, state: dict, device) -> tuple[UniqueSplat, int]:
     with _quiet_resnet():
         model = UniqueSplat(cfg)
     model.load_state_dict(sd)
+    model.trained_depth_range = _depth_range(path, state)
     step = state.get("step", 0)
     return model.to(device).eval(), step if isinstance(step, int) else 0
 
@@ -225,9 +226,14 @@ def training_depth_range(checkpoint: str | os.PathLike, trust: bool = False
                          ) -> list[float] | None:
     """[min near, max near, min far, max far] of the scenes a usplat checkpoint (a file or a
     shipped name) was trained on: the file's ``depth_range`` (``usplat train`` records it), else
-    a shipped file's manifest entry, else ``None`` (older files, MVSplat's)."""
+    a shipped file's manifest entry, else ``None`` (older files, MVSplat's). ``load`` keeps it
+    as the model's ``trained_depth_range``."""
     path = resolve_checkpoint(checkpoint)
-    state = read_usplat_checkpoint(path, trust=trust)
+    return _depth_range(path, read_usplat_checkpoint(path, trust=trust))
+
+
+def _depth_range(path: Path, state: dict) -> list[float] | None:
+    """``training_depth_range`` of the checkpoint ``state`` read from ``path``."""
     found = state.get("depth_range")
     if found is None and path.parent.resolve() == CHECKPOINTS.resolve():
         entries = json.loads((CHECKPOINTS / "manifest.json").read_text())
@@ -236,9 +242,8 @@ def training_depth_range(checkpoint: str | os.PathLike, trust: bool = False
         return None
     if (not isinstance(found, (list, tuple)) or len(found) != 4
             or not all(isinstance(x, (int, float)) and 0 < x < float("inf") for x in found)):
-        raise ValueError(f"checkpoint {str(checkpoint)!r}: its depth_range must be four "
-                         f"positive numbers [min near, max near, min far, max far], got "
-                         f"{found!r}")
+        raise ValueError(f"checkpoint {str(path)!r}: its depth_range must be four positive "
+                         f"numbers [min near, max near, min far, max far], got {found!r}")
     return [float(x) for x in found]
 
 
