@@ -152,11 +152,14 @@ def test_top_level_holds_only_plumbing():
     assert {LAYERS[m if m != "__init__" else ""] for m in top} <= {0, 1, 8, 9}, top
 
 
-def test_one_job_module_per_command():
-    from usplat_dr.cli import COMMANDS
+def test_one_job_module_per_command_named_after_it():
+    from usplat_dr.cli import COMMANDS, job_module
 
-    modules = [module for module, _ in COMMANDS.values()]
+    modules = [job_module(command) for command in COMMANDS]
     assert len(set(modules)) == len(modules)
+    shared = {"__init__", "arguments", "report"}  # helpers of several commands, not commands
+    assert {m.rsplit(".", 1)[1] for m in MODULES if m.startswith("usplat_dr.jobs.")} - shared \
+        == set(modules)
     for module in modules:
         assert f"usplat_dr.jobs.{module}" in MODULES, module
         tree = ast.parse(MODULES[f"usplat_dr.jobs.{module}"].read_text())

@@ -95,7 +95,7 @@ def test_the_demo_time_is_stated_once():
     demo_line = next(line for line in README.read_text().splitlines()
                      if line.startswith("bash scripts/run.sh demo"))
     assert f"({DEMO_MINUTES} min on 2 CPU cores)" in demo_line, demo_line
-    assert f"{DEMO_MINUTES} minutes" in COMMANDS["demo"][1]
+    assert f"{DEMO_MINUTES} minutes" in COMMANDS["demo"]
 
 
 def test_no_page_speaks_of_the_process():

@@ -8,41 +8,52 @@ seconds), so ``usplat doctor`` and ``usplat --help`` start at once.
 import argparse
 import errno
 import importlib
+import keyword
 import logging
 import sys
 
 from usplat_dr import DEMO_MINUTES, __version__, _threads, portable
 
-#: ``usplat`` command -> (module of ``usplat_dr.jobs``, help line).
+#: ``usplat`` command -> help line. Each command is the module of ``usplat_dr.jobs`` named after
+#: it (``job_module``).
 COMMANDS = {
-    "demo": ("demo", ("the main job: synthetic data, train (a) and (c), evaluate, write a "
-                      f"report ({DEMO_MINUTES} minutes on 2 CPU cores)")),
-    "synth": ("synth", ("render procedural scenes with known geometry (Mitsuba) into the "
-                        "field's chunk format, with evaluation and stress splits")),
-    "import": ("import_scene", ("a COLMAP model or a nerfstudio transforms.json (and its "
-                                "images) into the chunk format, with an evaluation index")),
-    "train": ("train", ("train UniqueSplat (any variant) with the field's recipe; also under "
-                        "torchrun (DistributedDataParallel)")),
-    "eval": ("evaluate", ("evaluate a trained model with the field's protocol (per-scene CSV, "
-                          "summary JSON, renders)")),
-    "render": ("render_video", ("novel views of a dataset scene or of your own images and "
-                                "cameras along a path: PNG frames, a video (mp4 with the video "
-                                "extra or ffmpeg, else GIF), a PLY")),
-    "view": ("view", ("an interactive viewer in the browser (viser): move the camera and the "
-                      "model predicts and renders that view's own Gaussians; (a)/(c), colour/"
-                      "depth/opacity; or a 3DGS PLY")),
-    "export-ply": ("export_ply",
-                   "the Gaussians predicted for one target view, as a standard 3DGS PLY"),
-    "bench": ("bench", ("speed against accuracy: train (or reuse) size presets x variants on "
-                        "the demo's data, measure time per view, memory, Gaussians and "
-                        "accuracy; CSV + chart in OUT/bench")),
-    "fit": ("fit_scene", ("per-scene Gaussian optimisation on a synthetic scene (renderer "
-                          "check): held-out PSNR/SSIM and a PNG of renders")),
-    "params": ("params", "parameter count of a UniqueSplat configuration, per part"),
-    "render-demo": ("render_demo",
-                    "render a procedural Gaussian scene from several cameras to PNGs"),
-    "doctor": ("doctor", "report versions, libLLVM, backends, GPU; exit 1 on problems"),
+    "demo": ("the main job: synthetic data, train (a) and (c), evaluate, write a report "
+             f"({DEMO_MINUTES} minutes on 2 CPU cores)"),
+    "synth": ("render procedural scenes with known geometry (Mitsuba) into the field's chunk "
+              "format, with evaluation and stress splits"),
+    "import": ("a COLMAP model or a nerfstudio transforms.json (and its images) into the chunk "
+               "format, with an evaluation index"),
+    "train": ("train UniqueSplat (any variant) with the field's recipe; also under torchrun "
+              "(DistributedDataParallel)"),
+    "eval": ("evaluate a trained model with the field's protocol (per-scene CSV, summary JSON, "
+             "renders)"),
+    "render": ("novel views of a dataset scene or of your own images and cameras along a path: "
+               "PNG frames, a video (mp4 with the video extra or ffmpeg, else GIF), a PLY"),
+    "view": ("an interactive viewer in the browser (viser): move the camera and the model "
+             "predicts and renders that view's own Gaussians; (a)/(c), colour/depth/opacity; "
+             "or a 3DGS PLY"),
+    "export-ply": "the Gaussians predicted for one target view, as a standard 3DGS PLY",
+    "bench": ("speed against accuracy: train (or reuse) size presets x variants on the demo's "
+              "data, measure time per view, memory, Gaussians and accuracy; CSV + chart in "
+              "OUT/bench"),
+    "fit": ("per-scene Gaussian optimisation on a synthetic scene (renderer check): held-out "
+            "PSNR/SSIM and a PNG of renders"),
+    "params": "parameter count of a UniqueSplat configuration, per part",
+    "render-demo": "render a procedural Gaussian scene from several cameras to PNGs",
+    "doctor": "report versions, libLLVM, backends, GPU; exit 1 on problems",
 }
+
+
+def job_module(command: str) -> str:
+    """The module of ``usplat_dr.jobs`` that runs ``command``: its name with ``-`` as ``_``, and
+    a trailing ``_`` where that is a Python keyword (PEP 8).
+
+    Examples:
+        >>> job_module("export-ply"), job_module("import"), job_module("eval")
+        ('export_ply', 'import_', 'eval')
+    """
+    name = command.replace("-", "_")
+    return f"{name}_" if keyword.iskeyword(name) else name
 
 
 #: User mistakes (a missing file, a bad config key or value, a checkpoint that does not fit,
@@ -130,10 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     parsers = {name: sub.add_parser(name, help=text, description=text,
                                     formatter_class=DefaultsHelpFormatter)
-               for name, (_, text) in COMMANDS.items()}
+               for name, text in COMMANDS.items()}
     chosen = next((a for a in argv if not a.startswith("-")), None)
     if chosen in COMMANDS:
-        job = importlib.import_module(f"usplat_dr.jobs.{COMMANDS[chosen][0]}")
+        job = importlib.import_module(f"usplat_dr.jobs.{job_module(chosen)}")
         job.add_arguments(parsers[chosen])
         parsers[chosen].set_defaults(run=job.run)
         for action in parsers[chosen]._actions:  # an option without help still shows its default

@@ -20,12 +20,12 @@ from usplat_dr.cli import main
 def test_every_option_of_every_command_has_help_and_commands_run_in_workflow_order():
     import argparse
 
-    from usplat_dr.cli import COMMANDS
+    from usplat_dr.cli import COMMANDS, job_module
 
     missing = []
-    for name, (module, _) in COMMANDS.items():
+    for name in COMMANDS:
         parser = argparse.ArgumentParser()
-        importlib.import_module(f"usplat_dr.jobs.{module}").add_arguments(parser)
+        importlib.import_module(f"usplat_dr.jobs.{job_module(name)}").add_arguments(parser)
         missing += [f"usplat {name} {'/'.join(a.option_strings) or a.dest}"
                     for a in parser._actions
                     if not a.help and not isinstance(a, argparse._HelpAction)]
@@ -35,14 +35,14 @@ def test_every_option_of_every_command_has_help_and_commands_run_in_workflow_ord
                               "export-ply", "bench", "fit", "params", "render-demo", "doctor"]
 
 
-@pytest.mark.parametrize("module", ["synth", "import_scene", "fit_scene"])
+@pytest.mark.parametrize("module", ["synth", "import_", "fit"])
 def test_image_shape_is_the_one_name_and_resolution_still_works_with_a_line(module, caplog):
     import argparse
 
     parser = argparse.ArgumentParser()
     importlib.import_module(f"usplat_dr.jobs.{module}").add_arguments(parser)
-    required = {"synth": ["--out", "x"], "import_scene": ["--out", "x", "--colmap", "c"],
-                "fit_scene": []}[module]
+    required = {"synth": ["--out", "x"], "import_": ["--out", "x", "--colmap", "c"],
+                "fit": []}[module]
     with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.arguments"):
         new = parser.parse_args([*required, "--image-shape", "8", "16"])
         assert not caplog.records

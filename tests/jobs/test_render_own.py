@@ -12,7 +12,7 @@ import usplat_dr
 from usplat_dr.cli import main
 from usplat_dr.data.user_views import context_views, read_cameras
 from usplat_dr.io.images import to_uint8
-from usplat_dr.jobs.render_video import targets
+from usplat_dr.jobs.render import targets
 
 
 def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene, tmp_path, capsys):
@@ -71,7 +71,7 @@ def test_a_range_far_outside_the_training_range_is_warned_about(user_scene, tmp_
 
 def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp_path,
                                                                   monkeypatch, capsys):
-    from usplat_dr.jobs import render_video
+    from usplat_dr.jobs import render as render_job
 
     images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (0, 2)]
     cameras = str(user_scene.root / "transforms.json")
@@ -79,7 +79,7 @@ def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp
             cameras, "--near", "2", "--far", "7", "--path", cameras]
     frames = {}
     for chunk in (2, 8):  # 6 cameras: three chunks of 2, or one
-        monkeypatch.setattr(render_video, "PATH_CHUNK", chunk)
+        monkeypatch.setattr(render_job, "PATH_CHUNK", chunk)
         assert main([*args, "--out", str(tmp_path / f"c{chunk}")]) == 0
         frames[chunk] = [np.asarray(Image.open(f)) for f in
                          sorted((tmp_path / f"c{chunk}" / "frames").glob("*.png"))]
@@ -91,7 +91,7 @@ def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp
     for a, b in zip(frames[2], frames[8]):
         diff = np.abs(a.astype(int) - b)
         assert diff.max() <= 1 and (diff > 0).mean() <= 0.01
-    monkeypatch.setattr(render_video, "MAX_PATH_CAMERAS", 5)
+    monkeypatch.setattr(render_job, "MAX_PATH_CAMERAS", 5)
     capsys.readouterr()
     assert main([*args, "--out", str(tmp_path / "long")]) == 2
     assert "holds 6 cameras (at most 5 frames)" in capsys.readouterr().err
@@ -132,7 +132,7 @@ def test_the_readme_python_block_runs_on_a_users_project(user_scene):
 
 
 def test_a_shorter_render_into_the_same_folder_leaves_no_stale_frames(tmp_path):
-    from usplat_dr.jobs.render_video import write_frames
+    from usplat_dr.jobs.render import write_frames
 
     folder = tmp_path / "out" / "frames"
     write_frames(np.zeros((5, 4, 8, 3)), folder)

@@ -112,10 +112,10 @@ def test_bad_inference_precision_names_the_setting(model):
 def test_bfloat16_with_onednn_capped_at_avx2_warns(monkeypatch, caplog):
     # oneDNN capped at AVX2 has no bfloat16 instructions: usplat eval says so rather than
     # running 14x slower in silence (usplat leaves the cap off for bfloat16; a user may set it)
-    from usplat_dr.jobs.evaluate import warn_slow_bfloat16
+    from usplat_dr.jobs.eval import warn_slow_bfloat16
 
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
-    with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.evaluate"):
+    with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.eval"):
         warn_slow_bfloat16()
     assert "Unset it for the fast path" in caplog.text
 

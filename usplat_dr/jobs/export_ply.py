@@ -7,7 +7,7 @@ import torch
 
 from usplat_dr.data.types import model_inputs
 from usplat_dr.jobs.arguments import non_negative_int, out_file
-from usplat_dr.jobs.render_video import add_example_arguments, one_example
+from usplat_dr.jobs.render import add_example_arguments, one_example
 from usplat_dr.model.budget import GaussianBudget
 from usplat_dr.model.ply import write_ply
 

@@ -1,7 +1,7 @@
 """Per-scene Gaussian optimisation with our rasteriser (a renderer check on known geometry):
 initialise Gaussians from a scene's depth maps, optimise means, scales, rotations, opacities
 and SH on the training views, measure PSNR/SSIM on held-out views. ``usplat fit``
-(``usplat_dr.jobs.fit_scene``) runs it on a synthetic scene; ``train/examples/`` use its parts.
+(``usplat_dr.jobs.fit``) runs it on a synthetic scene; ``train/examples/`` use its parts.
 
 Follows 3D Gaussian Splatting (Kerbl et al. 2023, sec. 5-6): per-parameter Adam learning
 rates, loss 0.8 L1 + 0.2 (1 - SSIM), scales as logs, opacities as logits, quaternions

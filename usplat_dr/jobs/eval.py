@@ -17,7 +17,7 @@ from usplat_dr.jobs.arguments import (
     add_budget_arguments,
     out_folder,
 )
-from usplat_dr.jobs.render_video import add_image_shape_argument, add_trust_argument, image_shape
+from usplat_dr.jobs.render import add_image_shape_argument, add_trust_argument, image_shape
 from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import checkpoint_provenance, load
 

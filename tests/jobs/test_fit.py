@@ -1,4 +1,4 @@
-"""``usplat fit`` (``usplat_dr.jobs.fit_scene``): the command around
+"""``usplat fit`` (``usplat_dr.jobs.fit``): the command around
 ``usplat_dr.training.per_scene`` (tested in tests/training/test_per_scene.py)."""
 
 import pytest
