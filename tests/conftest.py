@@ -65,6 +65,34 @@ def _restore_environment():
             portable.unpin_drjit()
 
 
+@pytest.fixture(scope="session")
+def synthetic_sets(tmp_path_factory):
+    """``get(name)``: the named set of ``tests/synth_sets.py``, rendered once per test run.
+    Read only: a test that writes into a set renders its own."""
+    from tests.synth_sets import synthetic_set
+
+    made = {}
+
+    def get(name: str):
+        if name not in made:
+            made[name] = synthetic_set(name, tmp_path_factory.mktemp(f"set_{name}"))
+        return made[name]
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def trainer_set(synthetic_sets):
+    """Two training scenes (seed 0) and two test scenes (seed 1), 10 frames of 32x32."""
+    return synthetic_sets("trainer")
+
+
+@pytest.fixture(scope="session")
+def protocol_set(synthetic_sets):
+    """Two test scenes (seed 3) with the evaluation indices, 10 frames of 32x32."""
+    return synthetic_sets("protocol")
+
+
 @pytest.fixture(scope="module")
 def user_scene(tmp_path_factory):
     """A user's own scene: the synthetic truth of tests/data/test_importers.py (images with

@@ -1,6 +1,9 @@
-"""The small Mitsuba-rendered sets the tests train and evaluate on, by name.
+"""The small Mitsuba-rendered sets the tests train and evaluate on, by name, and the tiny
+training configuration they train with.
 
-``synthetic_set(name, folder)`` renders one with ``usplat_dr.data.synth.synthesize``. A machine
+``synthetic_set(name, folder)`` renders one with ``usplat_dr.data.synth.synthesize``; tests take
+them as the session fixtures ``trainer_set`` and ``protocol_set`` (``tests/conftest.py``),
+rendered once per test run and read only (a test that changes files renders its own). A machine
 without Mitsuba (a GPU image that runs ``scripts/run.sh gpu-check``) uses the same set rendered
 beforehand elsewhere, under ``$USPLAT_TEST_DATA/<name>``; without either the test skips::
 
@@ -42,6 +45,26 @@ def synthetic_set(name: str, folder: Path) -> Path:
         pytest.skip(f"no Mitsuba to render the {name!r} set, and no $USPLAT_TEST_DATA/{name} "
                     f"(python -m tests.synth_sets DIR renders it on a machine with Mitsuba)")
     return render(name, folder)
+
+
+#: What every tiny training run of the tests shares: 32x32 images, two targets, context views
+#: at most 6 frames apart (the sets have 10), no progress bar and no validation.
+TINY_TRAINING = ("dataset.image_shape=[32, 32]", "train.progress=false",
+                 "train.validate_every=100000",
+                 "dataset.view_sampler.max_distance_between_context_views=6",
+                 "dataset.view_sampler.initial_max_distance_between_context_views=6",
+                 "dataset.view_sampler.num_target_views=2")
+
+
+def tiny_training_config(config: str | Path, root: Path, out: Path, steps: int,
+                         *overrides: str) -> dict:
+    """The configuration ``config`` (a name under ``configs/`` or a path) with
+    ``TINY_TRAINING``, on ``root``, writing to ``out``, for ``steps`` steps; ``overrides`` last
+    (they win)."""
+    from usplat_dr.config import load_config
+
+    return load_config([config], [f"dataset.roots=[{root}]", f"output_dir={out}",
+                                  f"train.steps={steps}", *TINY_TRAINING, *overrides])
 
 
 if __name__ == "__main__":

@@ -8,7 +8,6 @@ import math
 import pytest
 import torch
 
-from tests.synth_sets import synthetic_set
 from usplat_dr.data.synth.render import MISS, PLAIN, TEXTURED
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.allocation import COLUMNS, allocation, kept_per_pixel
@@ -45,11 +44,11 @@ def test_allocation_splits_the_kept_fraction_by_material_and_depth():
     assert set(allocation(kept)) == {"kept"}  # no maps, no splits
 
 
-def test_evaluate_with_a_budget_says_where_it_went(tmp_path, caplog):
+def test_evaluate_with_a_budget_says_where_it_went(tmp_path, caplog, protocol_set):
     from usplat_dr.model import UniqueSplat
 
     caplog.set_level(logging.ERROR, logger="usplat_dr.model.uniquesplat")
-    root = synthetic_set("protocol", tmp_path / "data")
+    root = protocol_set
     indices = synthetic_indices(root)
     torch.manual_seed(0)
     model = UniqueSplat.from_preset("tiny", variant="baseline")

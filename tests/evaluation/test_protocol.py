@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.synth_sets import synthetic_set
 from usplat_dr.evaluation import depth_metrics, evaluate, synthetic_indices
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.training.checkpoints import load_model
@@ -31,11 +30,11 @@ def test_depth_metrics_by_hand():
     assert math.isnan(nan["abs_rel"])
 
 
-def test_evaluate_follows_the_protocol_and_writes_files(tmp_path, device):
+def test_evaluate_follows_the_protocol_and_writes_files(tmp_path, device, protocol_set):
     # On every available device (CPU always, CUDA where present).
     from usplat_dr.model import UniqueSplat
 
-    root = synthetic_set("protocol", tmp_path / "data")
+    root = protocol_set
     indices = synthetic_indices(root)
     assert "standard" in indices
     torch.manual_seed(0)

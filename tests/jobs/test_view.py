@@ -25,7 +25,6 @@ from scipy.spatial.transform import Rotation
 
 import usplat_dr
 from tests.data.test_importers import Truth
-from tests.synth_sets import synthetic_set
 from usplat_dr.cli import main
 from usplat_dr.data.user_views import context_views, read_cameras
 from usplat_dr.jobs import view
@@ -217,11 +216,10 @@ def test_a_view_is_what_predict_renders_for_that_camera(scene, truth):
     assert p.gaussians == v.gaussians and ply.labels == ["PLY: g.ply"]
 
 
-def test_a_dataset_scene_seen_from_its_context_cameras_shows_their_images(tmp_path):
+def test_a_dataset_scene_seen_from_its_context_cameras_shows_their_images(protocol_set):
     """--data: each context camera, passed through viser's camera (wxyz, position, fov,
     aspect) and back, renders its own image and not the other one."""
-    root = synthetic_set("protocol", tmp_path / "protocol")
-    scene = view.scene_from_args(parse("--checkpoint", "tiny_full", "--data", str(root),
+    scene = view.scene_from_args(parse("--checkpoint", "tiny_full", "--data", str(protocol_set),
                                        "--compare", "none"))
     assert scene.labels == ["(c) UniqueSplat: tiny_full"] and scene.image_shape == (64, 64)
     images = scene.images.permute(0, 2, 3, 1).numpy()

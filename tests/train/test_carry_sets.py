@@ -10,7 +10,6 @@ import numpy as np
 import torch
 from PIL import Image
 
-from tests.synth_sets import synthetic_set
 from usplat_dr.data.dataset import dataset_from_section
 
 SCRIPT = Path(__file__).parents[2] / "train" / "studies" / "carry_sets.py"
@@ -23,8 +22,8 @@ def _scenes(stage: Path) -> list[dict]:
     return [s for f in sorted(stage.glob("*.torch")) for s in torch.load(f, weights_only=False)]
 
 
-def test_pack_then_unpack_gives_the_scenes_back(tmp_path):
-    root = synthetic_set("trainer", tmp_path / "rendered")
+def test_pack_then_unpack_gives_the_scenes_back(tmp_path, trainer_set):
+    root = trainer_set
     out = tmp_path / "packed"
     carry.main(["pack", "--out", str(out), f"train={root / 'train'}:1:jpeg",
                 f"heldout={root}::png"])

@@ -10,8 +10,8 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from tests.synth_sets import synthetic_set
-from usplat_dr.config import ConfigError, load_config
+from tests.synth_sets import tiny_training_config
+from usplat_dr.config import ConfigError
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.model.budget import GaussianBudget
@@ -24,19 +24,9 @@ from usplat_dr.training.stages import freeze_for_budget, step_budget
 pytestmark = pytest.mark.usefixtures("restore_threads")
 
 
-@pytest.fixture(scope="module")
-def synth_root(tmp_path_factory) -> Path:
-    # the suite's small training set (or, without Mitsuba, its pre-rendered copy)
-    return synthetic_set("trainer", tmp_path_factory.mktemp("synth_budget"))
-
-
 def config(root: Path, out: Path, steps: int, *overrides: str, name="synthetic_tiny_budget.yaml"):
-    return load_config([name], [
-        f"dataset.roots=[{root}]", "dataset.image_shape=[32, 32]", f"output_dir={out}",
-        f"train.steps={steps}", "train.progress=false", "train.validate_every=100000",
-        "train.log_every=1", "dataset.view_sampler.max_distance_between_context_views=6",
-        "dataset.view_sampler.initial_max_distance_between_context_views=6",
-        "dataset.view_sampler.num_target_views=2", "threads=1", *overrides])
+    return tiny_training_config(name, root, out, steps, "train.log_every=1", "threads=1",
+                                *overrides)
 
 
 def test_each_step_draws_its_budget_from_the_config():
@@ -60,26 +50,26 @@ def test_each_step_draws_its_budget_from_the_config():
     assert step_budget(RootCfg(), 3) is None
 
 
-def test_budget_settings_are_checked_and_name_the_key(synth_root, tmp_path):
+def test_budget_settings_are_checked_and_name_the_key(trainer_set, tmp_path):
     with pytest.raises(ConfigError, match=r"train\.budget_fractions=\(0\.5, 1\.5\)"):
-        RootCfg.load(config(synth_root, tmp_path, 1, "train.budget_fractions=[0.5, 1.5]"))
+        RootCfg.load(config(trainer_set, tmp_path, 1, "train.budget_fractions=[0.5, 1.5]"))
     with pytest.raises(ConfigError, match="train.trainable='some'"):
-        RootCfg.load(config(synth_root, tmp_path, 1, "train.trainable=some"))
-    no_head = RootCfg.load(config(synth_root, tmp_path, 1, "model.overrides.importance=false"))
+        RootCfg.load(config(trainer_set, tmp_path, 1, "train.trainable=some"))
+    no_head = RootCfg.load(config(trainer_set, tmp_path, 1, "model.overrides.importance=false"))
     with pytest.raises(ConfigError, match="model.overrides.importance=true"):
         freeze_for_budget(model_from_config(no_head.model), no_head)
-    ones = RootCfg.load(config(synth_root, tmp_path, 1, "train.budget_sampling=choice",
+    ones = RootCfg.load(config(trainer_set, tmp_path, 1, "train.budget_sampling=choice",
                                "train.budget_fractions=[0.1, 1.0]"))
     with pytest.raises(ConfigError, match="holds 1 with train.trainable=budget"):
         freeze_for_budget(model_from_config(ones.model), ones)
 
 
-def test_budget_stage_from_a_trained_checkpoint(synth_root, tmp_path):
+def test_budget_stage_from_a_trained_checkpoint(trainer_set, tmp_path):
     # (c) trained for a step, then the budget stage from it: every weight of (c) loaded, the
     # head new; only the head trains, so the unbudgeted model stays (c) bit for bit.
-    base = Trainer(config(synth_root, tmp_path / "c", 1, name="synthetic_tiny_depth.yaml"))
+    base = Trainer(config(trainer_set, tmp_path / "c", 1, name="synthetic_tiny_depth.yaml"))
     base.fit()
-    stage = Trainer(config(synth_root, tmp_path / "budget", 4,
+    stage = Trainer(config(trainer_set, tmp_path / "budget", 4,
                            f"model.init_from={base.checkpoint_path}"))
     start = {k: v.clone() for k, v in stage.model.state_dict().items()}
     for k, v in base.model.state_dict().items():
@@ -110,8 +100,8 @@ def test_budget_stage_from_a_trained_checkpoint(synth_root, tmp_path):
     assert torch.equal(same.color, ref.color)  # the unbudgeted render is (c)'s
 
 
-def test_the_full_render_term_joins_a_budgeted_step(synth_root, tmp_path):
-    cfg = RootCfg.load(config(synth_root, tmp_path, 1, "model.variant=baseline",
+def test_the_full_render_term_joins_a_budgeted_step(trainer_set, tmp_path):
+    cfg = RootCfg.load(config(trainer_set, tmp_path, 1, "model.variant=baseline",
                               "train.trainable=all", "loss.full_render=1.0"))
     torch.manual_seed(0)
     model = model_from_config(cfg.model).train()

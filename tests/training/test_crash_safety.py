@@ -19,7 +19,6 @@ import pytest
 import torch
 
 from tests.training.processes import environment, stamp, wait_for
-from usplat_dr.data.synth import synthesize
 
 REPO = Path(__file__).parents[2]
 CONFIG = REPO / "usplat_dr" / "configs" / "synthetic_tiny.yaml"
@@ -33,11 +32,8 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("synth")
-    synthesize(root, scenes=2, frames=10, resolution=(32, 32), seed=0, spp=4, stage="train",
-               previews=0, progress=False, kinds=("indoor",))
-    return root
+def data(trainer_set) -> Path:
+    return trainer_set
 
 
 def command(root: Path, out: Path) -> list[str]:

@@ -10,7 +10,8 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from usplat_dr.config import ConfigError, load_config
+from tests.synth_sets import tiny_training_config
+from usplat_dr.config import ConfigError
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.synth import synthesize
 from usplat_dr.data.types import model_inputs
@@ -32,12 +33,8 @@ def synth_root(tmp_path_factory) -> Path:
 
 
 def config(root: Path, out: Path, steps: int, *overrides: str) -> dict:
-    return load_config([CONFIGS / "synthetic_tiny_depth.yaml"], [
-        f"dataset.roots=[{root}]", "dataset.image_shape=[32, 32]", f"output_dir={out}",
-        f"train.steps={steps}", "train.progress=false", "train.validate_every=100000",
-        "dataset.view_sampler.max_distance_between_context_views=6",
-        "dataset.view_sampler.initial_max_distance_between_context_views=6",
-        "dataset.view_sampler.num_target_views=2", "threads=1", *overrides])
+    return tiny_training_config(CONFIGS / "synthetic_tiny_depth.yaml", root, out, steps,
+                                "threads=1", *overrides)
 
 
 def test_depth_loss_matches_a_float64_reference():

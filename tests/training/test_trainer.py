@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.synth_sets import synthetic_set
+from tests.synth_sets import tiny_training_config
 from usplat_dr.config import ConfigError, load_config
 from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
@@ -27,21 +27,11 @@ CONFIGS = Path(__file__).parents[2] / "usplat_dr" / "configs"
 pytestmark = pytest.mark.usefixtures("restore_threads")
 
 
-@pytest.fixture(scope="module")
-def synth_root(tmp_path_factory) -> Path:
-    """Two small synthetic scenes (train and test stages) rendered by Mitsuba."""
-    return synthetic_set("trainer", tmp_path_factory.mktemp("synth"))
-
-
 def config(root: Path, out: Path, steps: int, *overrides: str) -> dict:
-    return load_config([CONFIGS / "synthetic_tiny.yaml"], [
-        f"dataset.roots=[{root}]", "dataset.image_shape=[32, 32]", f"output_dir={out}",
-        f"train.steps={steps}", "train.progress=false", "train.validate_every=100000",
-        "dataset.view_sampler.min_distance_between_context_views=3",
-        "dataset.view_sampler.max_distance_between_context_views=6",
-        "dataset.view_sampler.initial_min_distance_between_context_views=3",
-        "dataset.view_sampler.initial_max_distance_between_context_views=6",
-        "dataset.view_sampler.num_target_views=2", *overrides])
+    return tiny_training_config(CONFIGS / "synthetic_tiny.yaml", root, out, steps,
+                                "dataset.view_sampler.min_distance_between_context_views=3",
+                                "dataset.view_sampler.initial_min_distance_between_context_"
+                                "views=3", *overrides)
 
 
 def params(model) -> dict:
@@ -98,19 +88,19 @@ def test_typed_config_has_one_source_of_defaults_and_names_bad_keys(tmp_path):
         RootCfg.load({"loss": {"depth": True}})
 
 
-def test_bad_sections_and_missing_lpips_files_stop_at_start(synth_root, tmp_path):
+def test_bad_sections_and_missing_lpips_files_stop_at_start(trainer_set, tmp_path):
     with pytest.raises(ConfigError, match="unknown key"):
-        Trainer(config(synth_root, tmp_path, 2, "optimizer.learning_rate=1"))
+        Trainer(config(trainer_set, tmp_path, 2, "optimizer.learning_rate=1"))
     with pytest.raises(LPIPSWeightsMissing, match="vgg16-397923af.pth"):
-        Trainer(config(synth_root, tmp_path, 2, "loss.lpips=0.05", "loss.lpips_after_step=0"))
+        Trainer(config(trainer_set, tmp_path, 2, "loss.lpips=0.05", "loss.lpips_after_step=0"))
     with pytest.raises(ConfigError, match="dataset.roots"):
-        Trainer(config(synth_root, tmp_path, 2, "dataset.roots=[]"))
+        Trainer(config(trainer_set, tmp_path, 2, "dataset.roots=[]"))
 
 
-def test_overfitting_one_scene_raises_psnr(synth_root, tmp_path, device):
+def test_overfitting_one_scene_raises_psnr(trainer_set, tmp_path, device):
     # On every available device (CPU always, CUDA where present: config ``device``).
     torch.manual_seed(0)
-    trainer = Trainer(config(synth_root, tmp_path, 120, "optimizer.lr=1e-3",
+    trainer = Trainer(config(trainer_set, tmp_path, 120, "optimizer.lr=1e-3",
                              "optimizer.warm_up_fraction=0.05", f"device={device.type}"))
     batch = trainer.batches.next()
 
@@ -130,14 +120,14 @@ def test_overfitting_one_scene_raises_psnr(synth_root, tmp_path, device):
     assert after > before + 8, (before, after)
 
 
-def test_resume_continues_exactly(synth_root, tmp_path):
+def test_resume_continues_exactly(trainer_set, tmp_path):
     # One thread: the float sums (torch's and the rasteriser's scatter-adds) then run in a
     # fixed order, so "exactly" can be bit for bit. (With 2 threads, two straight runs differ
     # by ~1e-5 in the weights after 6 Adam steps: accumulation order, amplified by Adam.)
     opts = ("train.checkpoint_every=3", "train.log_every=1", "threads=1")
-    straight = Trainer(config(synth_root, tmp_path / "a", 6, *opts))
+    straight = Trainer(config(trainer_set, tmp_path / "a", 6, *opts))
     straight.fit()
-    first = Trainer(config(synth_root, tmp_path / "b", 6, *opts))
+    first = Trainer(config(trainer_set, tmp_path / "b", 6, *opts))
     # a run killed right after its step-3 checkpoint (its scheduler still planned 6 steps)
     first.config = dataclasses.replace(first.config,
                                        train=dataclasses.replace(first.config.train, steps=3))
@@ -145,7 +135,7 @@ def test_resume_continues_exactly(synth_root, tmp_path):
     # the checkpoint is tensors and plain data (RNG states included): weights_only loads it
     state = torch.load(tmp_path / "b" / "checkpoints" / "last.ckpt", weights_only=True)
     assert state["step"] == 3 and isinstance(state["rng"]["numpy"], dict)
-    resumed = Trainer(config(synth_root, tmp_path / "b", 6, *opts))
+    resumed = Trainer(config(trainer_set, tmp_path / "b", 6, *opts))
     assert resumed.resume() and resumed.step == 3
     resumed.fit()
     a, b = params(straight.model), params(resumed.model)
@@ -164,14 +154,14 @@ def test_resume_continues_exactly(synth_root, tmp_path):
     assert a_rows == b_rows
 
 
-def test_the_depth_range_trained_on_is_recorded_resumed_and_shipped(synth_root, tmp_path):
+def test_the_depth_range_trained_on_is_recorded_resumed_and_shipped(trainer_set, tmp_path):
     # the scenes' own near_far records (read from the chunk files, not through the trainer)
-    scenes = [s for f in sorted(synth_root.glob("train/*.torch"))
+    scenes = [s for f in sorted(trainer_set.glob("train/*.torch"))
               for s in torch.load(f, weights_only=True)]
     near = [float(s["near_far"][0]) for s in scenes]
     far = [float(s["near_far"][1]) for s in scenes]
     opts = ("train.checkpoint_every=2", "threads=1")
-    first = Trainer(config(synth_root, tmp_path / "run", 2, *opts))
+    first = Trainer(config(trainer_set, tmp_path / "run", 2, *opts))
     first.fit()
     recorded = first.depth_range
     # what the batches drew lies within the set's scenes, as float32 values of them
@@ -179,14 +169,14 @@ def test_the_depth_range_trained_on_is_recorded_resumed_and_shipped(synth_root, 
     assert min(far) <= recorded[2] <= recorded[3] <= max(far), (recorded, far)
     checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert torch.load(checkpoint, weights_only=True)["depth_range"] == recorded
-    resumed = Trainer(config(synth_root, tmp_path / "run", 2, *opts))
+    resumed = Trainer(config(trainer_set, tmp_path / "run", 2, *opts))
     assert resumed.resume() and resumed.depth_range == recorded
     shipped = export_weights(checkpoint, tmp_path / "shipped.pt")
     assert training_depth_range(shipped) == recorded
 
 
-def test_signal_saves_and_stops(synth_root, tmp_path):
-    trainer = Trainer(config(synth_root, tmp_path, 50))
+def test_signal_saves_and_stops(trainer_set, tmp_path):
+    trainer = Trainer(config(trainer_set, tmp_path, 50))
     original = trainer.train_step
 
     def step_then_signal(batch):
@@ -198,12 +188,12 @@ def test_signal_saves_and_stops(synth_root, tmp_path):
     trainer.train_step = step_then_signal
     result = trainer.fit()
     assert result["step"] == 2 and trainer.checkpoint_path.is_file()
-    again = Trainer(config(synth_root, tmp_path, 50))
+    again = Trainer(config(trainer_set, tmp_path, 50))
     assert again.resume() and again.step == 2
 
 
-def test_non_finite_steps_are_skipped_then_stop(synth_root, tmp_path):
-    trainer = Trainer(config(synth_root, tmp_path, 20, "train.max_nonfinite=3"))
+def test_non_finite_steps_are_skipped_then_stop(trainer_set, tmp_path):
+    trainer = Trainer(config(trainer_set, tmp_path, 20, "train.max_nonfinite=3"))
     before = params(trainer.model)
     original = trainer.loss
 
@@ -219,18 +209,18 @@ def test_non_finite_steps_are_skipped_then_stop(synth_root, tmp_path):
     assert all(torch.equal(before[k], after[k]) for k in before)  # no update was applied
 
 
-def test_distributed_two_ranks_equal_one_process_on_the_combined_batch(synth_root, tmp_path):
+def test_distributed_two_ranks_equal_one_process_on_the_combined_batch(trainer_set, tmp_path):
     # Rank r trains on example r; one process trains on both at once. DDP averages the
     # ranks' gradients = the gradient of the mean loss over the combined batch.
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}  # imports tests.*
     worker = Path(__file__).parent / "ddp_worker.py"
     subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone",
-                    "--nproc_per_node", "2", str(worker), str(synth_root), str(tmp_path)],
+                    "--nproc_per_node", "2", str(worker), str(trainer_set), str(tmp_path)],
                    check=True, env=env, timeout=300)
     # The one-process reference runs in a fresh process too: this process may have set up
     # oneDNN for another ISA (an in-process `usplat` command pins AVX2; measured: AVX2 vs
     # AVX-512 convolutions alone move these gradients by 1.4e-3 relative).
-    subprocess.run([sys.executable, str(worker), str(synth_root), str(tmp_path), "single"],
+    subprocess.run([sys.executable, str(worker), str(trainer_set), str(tmp_path), "single"],
                    check=True, env=env, timeout=300)
     ddp = torch.load(tmp_path / "ddp.pt")
     single = torch.load(tmp_path / "single.pt")["grads"]
@@ -258,10 +248,10 @@ def first_examples(trainer, n):
     raise AssertionError("too few examples")
 
 
-def test_usplat_train_writes_checkpoint_metrics_and_validation_grid(synth_root, tmp_path):
+def test_usplat_train_writes_checkpoint_metrics_and_validation_grid(trainer_set, tmp_path):
     from usplat_dr.cli import main
 
-    overrides = [f"dataset.roots=[{synth_root}]", "dataset.image_shape=[32,32]",
+    overrides = [f"dataset.roots=[{trainer_set}]", "dataset.image_shape=[32,32]",
                  f"output_dir={tmp_path}", "train.steps=2", "train.validate_every=2",
                  "train.progress=false", "dataset.view_sampler.num_target_views=2",
                  "dataset.view_sampler.min_distance_between_context_views=3",
@@ -276,10 +266,10 @@ def test_usplat_train_writes_checkpoint_metrics_and_validation_grid(synth_root, 
     assert rows[0].startswith("step,loss") and rows[-1].startswith("2,")
 
 
-def test_hyper_lr_scale_gives_the_hypernetwork_branches_their_own_rate(synth_root, tmp_path):
+def test_hyper_lr_scale_gives_the_hypernetwork_branches_their_own_rate(trainer_set, tmp_path):
     from usplat_dr.training.optim import parameter_groups
 
-    trainer = Trainer(config(synth_root, tmp_path / "h", 4, "model.variant=full",
+    trainer = Trainer(config(trainer_set, tmp_path / "h", 4, "model.variant=full",
                              "optimizer.hyper_lr_scale=10", "threads=1"))
     primary, hyper = trainer.optimizer.param_groups
     names = {id(p): n for n, p in trainer.model.named_parameters()}
@@ -296,15 +286,15 @@ def test_hyper_lr_scale_gives_the_hypernetwork_branches_their_own_rate(synth_roo
         parameter_groups(trainer.model, 1e-3, 0)
 
 
-def test_a_skipped_step_advances_the_learning_rate_schedule(synth_root, tmp_path):
+def test_a_skipped_step_advances_the_learning_rate_schedule(trainer_set, tmp_path):
     # Decided: the learning rate is a function of the step counter. A skipped (non-finite)
     # step consumes its batch and its step, so the schedule advances with it; the rates of
     # the following steps are those of a run without the skip (compared exactly: the same
     # scheduler arithmetic on the same step count).
     opts = ("train.log_every=1", "threads=1")
-    clean = Trainer(config(synth_root, tmp_path / "a", 4, *opts))
+    clean = Trainer(config(trainer_set, tmp_path / "a", 4, *opts))
     clean.fit()
-    skipping = Trainer(config(synth_root, tmp_path / "b", 4, *opts))
+    skipping = Trainer(config(trainer_set, tmp_path / "b", 4, *opts))
     original = skipping.loss
 
     def nan_at_step_1(out, batch):
@@ -325,17 +315,17 @@ def test_a_skipped_step_advances_the_learning_rate_schedule(synth_root, tmp_path
     assert a[3] == b[3] and a[4] == b[4]
 
 
-def test_lpips_joins_the_loss_at_its_step(synth_root, tmp_path):
+def test_lpips_joins_the_loss_at_its_step(trainer_set, tmp_path):
     # The LPIPS training branch with weight files of the real layouts (random values): the
     # term is logged from loss.lpips_after_step on, and it changes the update.
     from tests.evaluation.test_lpips import weight_files
 
     vgg, lin, *_ = weight_files(tmp_path)
     opts = ("train.log_every=1", "threads=1", "loss.lpips_after_step=1")
-    with_lpips = Trainer(config(synth_root, tmp_path / "a", 2, *opts, "loss.lpips=0.5",
+    with_lpips = Trainer(config(trainer_set, tmp_path / "a", 2, *opts, "loss.lpips=0.5",
                                 f"loss.lpips_vgg={vgg}", f"loss.lpips_lin={lin}"))
     with_lpips.fit()
-    without = Trainer(config(synth_root, tmp_path / "b", 2, *opts, "loss.lpips=0"))
+    without = Trainer(config(trainer_set, tmp_path / "b", 2, *opts, "loss.lpips=0"))
     without.fit()
     with open(tmp_path / "a" / "metrics.csv") as f:
         rows = {int(r["step"]): r for r in csv.DictReader(f)}
@@ -345,7 +335,7 @@ def test_lpips_joins_the_loss_at_its_step(synth_root, tmp_path):
 
 
 @pytest.mark.parametrize("setting", ["true", "false"])
-def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, monkeypatch,
+def test_fit_keeps_the_cores_awake_only_while_it_trains(trainer_set, tmp_path, monkeypatch,
                                                         setting, caplog):
     from usplat_dr.training import cores as _cores
 
@@ -362,7 +352,7 @@ def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, mo
             super().stop()
 
     monkeypatch.setattr(_cores, "CoreKeeper", Recording)
-    trainer = Trainer(config(synth_root, tmp_path, 1, f"keep_cores_awake={setting}",
+    trainer = Trainer(config(trainer_set, tmp_path, 1, f"keep_cores_awake={setting}",
                              "threads=1"))
     with caplog.at_level(logging.INFO, logger="usplat_dr.training.run_folder"):
         trainer.fit()
@@ -376,12 +366,12 @@ def test_fit_keeps_the_cores_awake_only_while_it_trains(synth_root, tmp_path, mo
 
 
 @pytest.mark.parametrize("clip", [1e-3, 1e6])  # clipping scales the gradients / leaves them
-def test_clip_gradients_equals_group_norms_then_clip_grad_norm(synth_root, tmp_path, clip):
+def test_clip_gradients_equals_group_norms_then_clip_grad_norm(trainer_set, tmp_path, clip):
     # The one-pass clip against the two calls it replaces, on the full variant with an
     # importance head in a budgeted step (all five gradient groups): the same norms and the
     # same clipped gradients, compared exactly (the same per-parameter norms, stacked and
     # reduced in the same order).
-    trainer = Trainer(config(synth_root, tmp_path / "c", 1, "model.variant=full",
+    trainer = Trainer(config(trainer_set, tmp_path / "c", 1, "model.variant=full",
                              "model.overrides.importance=true", "threads=1",
                              f"optimizer.gradient_clip={clip}"))
     batch = trainer.batches.next()

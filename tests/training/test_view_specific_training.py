@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.synth_sets import synthetic_set
-from usplat_dr.config import ConfigError, load_config
+from tests.synth_sets import tiny_training_config
+from usplat_dr.config import ConfigError
 from usplat_dr.training import Trainer
 from usplat_dr.training.config import RootCfg, model_from_config
 from usplat_dr.training.run_log import read_metrics
@@ -19,25 +19,16 @@ pytestmark = pytest.mark.usefixtures("restore_threads")
 BRANCH = ("view_embedding.", "specific.")
 
 
-@pytest.fixture(scope="module")
-def synth_root(tmp_path_factory) -> Path:
-    return synthetic_set("trainer", tmp_path_factory.mktemp("synth_view_specific"))
-
-
 def config(root: Path, out: Path, steps: int, *overrides: str):
-    return load_config(["synthetic_tiny_depth.yaml"], [
-        f"dataset.roots=[{root}]", "dataset.image_shape=[32, 32]", f"output_dir={out}",
-        f"train.steps={steps}", "train.progress=false", "train.log_every=1",
-        "dataset.view_sampler.max_distance_between_context_views=6",
-        "dataset.view_sampler.initial_max_distance_between_context_views=6",
-        "dataset.view_sampler.num_target_views=2", "threads=1", *overrides])
+    return tiny_training_config("synthetic_tiny_depth.yaml", root, out, steps, "train.log_every=1",
+                                "threads=1", *overrides)
 
 
-def test_only_the_branch_trains_from_an_opened_gate_and_the_meter_is_logged(synth_root,
+def test_only_the_branch_trains_from_an_opened_gate_and_the_meter_is_logged(trainer_set,
                                                                             tmp_path):
-    base = Trainer(config(synth_root, tmp_path / "c", 1, "train.validate_every=100000"))
+    base = Trainer(config(trainer_set, tmp_path / "c", 1, "train.validate_every=100000"))
     base.fit()
-    stage = Trainer(config(synth_root, tmp_path / "vs", 3, "train.validate_every=3",
+    stage = Trainer(config(trainer_set, tmp_path / "vs", 3, "train.validate_every=3",
                            f"model.init_from={base.checkpoint_path}",
                            "train.trainable=view_specific", "model.open_gate_std=0.05",
                            "train.keep_every=2", "train.checkpoint_every=1"))
@@ -72,17 +63,17 @@ def test_only_the_branch_trains_from_an_opened_gate_and_the_meter_is_logged(synt
     assert float(rows[-1]["view_psnr_abs"]) > 0  # (and the renders differ by it)
 
 
-def test_the_view_specific_stage_needs_the_branch(synth_root, tmp_path):
-    cfg = RootCfg.load(config(synth_root, tmp_path, 1, "model.variant=agnostic",
+def test_the_view_specific_stage_needs_the_branch(trainer_set, tmp_path):
+    cfg = RootCfg.load(config(trainer_set, tmp_path, 1, "model.variant=agnostic",
                               "train.trainable=view_specific"))
     with pytest.raises(ConfigError, match="model.variant=full"):
         freeze_for_budget(model_from_config(cfg.model), cfg)
-    cfg = RootCfg.load(config(synth_root, tmp_path, 1, "model.variant=agnostic",
+    cfg = RootCfg.load(config(trainer_set, tmp_path, 1, "model.variant=agnostic",
                               "model.open_gate_std=0.1"))
     with pytest.raises(ConfigError, match="open_gate_std"):
         model_from_config(cfg.model)
     with pytest.raises(ConfigError, match="model.open_gate_std=-1"):
-        RootCfg.load(config(synth_root, tmp_path, 1, "model.open_gate_std=-1"))
+        RootCfg.load(config(trainer_set, tmp_path, 1, "model.open_gate_std=-1"))
     with pytest.raises(ConfigError, match="train.keep_every=3 is not a multiple"):
-        RootCfg.load(config(synth_root, tmp_path, 1, "train.keep_every=3",
+        RootCfg.load(config(trainer_set, tmp_path, 1, "train.keep_every=3",
                             "train.checkpoint_every=2"))
