@@ -1,6 +1,8 @@
 """``usplat bench``'s decisions and measurements on rows and blocks built by hand (the
 end-to-end run is in ``test_evaluation.test_demo_quick_end_to_end``)."""
 
+import logging
+
 import pytest
 import torch
 
@@ -19,16 +21,16 @@ def test_choose_applies_the_issue_rules():
             row("paper (c)", 38, "all", 20.7), row("tiny (a)", 3, "all", 25.0, size=32),
             row("tiny (a)", 3, "cull", 20.0, change=0.0, kept=0.8),
             row("paper (c)", 38, "cull", 20.7, change=0.0, kept=0.7),
-            row("tiny (a)", 3, "keep50%", 19.0, change=-1.0, kept=0.5),
-            row("paper (c)", 38, "keep50%", 20.69, change=-0.01, kept=0.5)]
+            row("tiny (a)", 3, "cull+merge2px", 19.0, change=-1.0, kept=0.5),
+            row("paper (c)", 38, "cull+merge2px", 20.69, change=-0.01, kept=0.5)]
     d = choose(rows, 64)
     # best 20.7 at 64 px (the 25 dB row is another render size); 20.5 is within 0.3 dB, 20.0
     # is not: the smallest within is small (c)
     assert d["best"] == "paper (c)" and d["smallest_within_0.3dB"] == "small (c)"
     assert d["pruning"]["cull"]["safe"] and d["pruning"]["cull"]["kept_fraction"] == 0.75
     # safe only if every configuration loses less than 0.05 dB
-    assert not d["pruning"]["keep50%"]["safe"]
-    assert d["pruning"]["keep50%"]["worst_psnr_change_db"] == -1.0
+    assert not d["pruning"]["cull+merge2px"]["safe"]
+    assert d["pruning"]["cull+merge2px"]["worst_psnr_change_db"] == -1.0
 
 
 def test_pareto_front_by_brute_force():
@@ -65,6 +67,22 @@ def test_config_parsing_names_the_choices(capsys):
     assert "give at least one --checkpoint" in capsys.readouterr().err
 
 
+def test_gaussians_takes_a_list_of_counts_or_fractions_and_the_old_name_says_so(caplog):
+    import argparse
+
+    from usplat_dr.jobs import bench
+
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.arguments"):
+        assert parser.parse_args(["--gaussians", "0.1,5000,30%"]).gaussians == (0.1, 5000, 0.3)
+        assert not caplog.records
+        assert parser.parse_args(["--fractions", "0.1,0.3"]).gaussians == (0.1, 0.3)
+    assert "--fractions is now --gaussians" in caplog.text
+    assert [name for name, *_ in bench.budget_settings((0.1, 5000), ("footprint",))] == [
+        "footprint10%", "footprint5000"]
+
+
 def test_measure_sweeps_gaussian_budgets_beside_pruning(tmp_path, caplog):
     """Budget rows for each fraction and ranking in the same table as the pruning rows: K
     Gaussians per view, a learned ranking only for a model with the head (whose untrained head
@@ -87,11 +105,12 @@ def test_measure_sweeps_gaussian_budgets_beside_pruning(tmp_path, caplog):
     headed.load_state_dict(plain.state_dict(), strict=False)
     a, budget = BenchConfig("tiny", "baseline"), BenchConfig("tiny", "baseline", "budget")
     rows = measure({a: plain, budget: headed}, root, 32, render_sizes=[32],
-                   prunes={"all": None}, progress=False, fractions=(0.1, 0.5))
+                   prunes={"all": None}, progress=False, gaussians=(0.1, 0.5))
     by = {(r["config"], r["prune"]): r for r in rows}
     assert budget.label == "tiny (a) budget"
     assert sorted(p for c, p in by if c == "tiny (a)") == [
-        "all", "dither10%", "dither50%", "opacity10%", "opacity50%", "random10%", "random50%"]
+        "all", "dither10%", "dither50%", "footprint10%", "footprint50%", "opacity10%",
+        "opacity50%", "random10%", "random50%"]
     assert sorted(p for c, p in by if c == "tiny (a) budget") == sorted(
         ["learned10%", "learned50%"] + [p for c, p in by if c == "tiny (a)"])
     for (c, p), r in by.items():

@@ -113,7 +113,9 @@ def test_render_demo_writes_images(tmp_path):
      "argument --gaussians: must be a count"),
     (["render", "--checkpoint", "c", "--gaussians", "30%", "--rank-by", "size"],
      "argument --rank-by: invalid choice: 'size'"),
-    (["bench", "--fractions", "0.1,2"], "--fractions: must be comma-separated fractions"),
+    (["bench", "--gaussians", "0.1,1.5"], "--gaussians/--fractions: must be a count (an "
+     "integer >= 1)"),
+    (["bench", "--fractions", "0.1,0"], "--gaussians/--fractions: must be a count"),
     (["bench", "--rank-by", "learned,size"], "--rank-by: unknown ['size']"),
     (["bench", "--checkpoint", "tiny:c=x.pt"], "--checkpoint: must be PRESET:VARIANT:TAG=PATH"),
     (["no-such-command"], "invalid choice: 'no-such-command'"),

@@ -223,6 +223,42 @@ def test_no_budget_or_all_of_them_leaves_the_output_bit_for_bit(variant):
         assert (out.aux["kept"] == total).all() and "importance" not in out.aux
 
 
+def test_the_footprint_ranking_keeps_what_covers_most_of_each_target():
+    torch.manual_seed(2)
+    model = UniqueSplat.from_preset("tiny", variant="full").eval()
+    args = scene(size=32, n=3)
+    targets = args.targets
+    with torch.no_grad():
+        full = model(*args, render=False)
+        out = model(*args, render=False, budget=GaussianBudget(0.2, rank_by="footprint"))
+    g = full.gaussians
+    k = round(0.2 * len(g))
+    assert (out.aux["kept"] == k).all()
+    # the scores: float64 from the equations (render/prune.py's projection is tested against
+    # the reference renderer's; here the model must hand it each target's own camera)
+    for t in range(3):
+        w2c = torch.linalg.inv(targets.extrinsics[0, t].double())
+        p = g.means[t].double() @ w2c[:3, :3].T + w2c[:3, 3]
+        fx, fy = targets.intrinsics[0, t, 0, 0] * 32, targets.intrinsics[0, t, 1, 1] * 32
+        zeros = torch.zeros_like(p[:, 2])
+        jac = torch.stack([torch.stack([fx / p[:, 2], zeros, -fx * p[:, 0] / p[:, 2] ** 2], -1),
+                           torch.stack([zeros, fy / p[:, 2], -fy * p[:, 1] / p[:, 2] ** 2], -1)],
+                          -2)
+        cov2 = jac @ w2c[:3, :3] @ g.covariances[t].double() @ w2c[:3, :3].T @ jac.transpose(-1, -2)
+        cov2 = cov2 + 0.3 * torch.eye(2, dtype=torch.float64)  # the rasteriser's dilation
+        area = (9 * math.pi * torch.linalg.det(cov2).sqrt()).clamp(max=32 * 32)
+        ref = g.opacities[t].double() * area
+        got = out.aux["importance"][t].double()
+        shown = got >= 0  # the others are culled (-1); most Gaussians of the scene are seen
+        assert shown.float().mean() > 0.5
+        # float32 against float64 projection (and the frustum guard's clamp, inactive for
+        # Gaussians inside the image): 1e-3 relative; a missing factor is off by >= 2x
+        inside = shown & (p[:, 0].abs() < 0.4 * p[:, 2]) & (p[:, 1].abs() < 0.4 * p[:, 2])
+        torch.testing.assert_close(got[inside], ref[inside], rtol=1e-3, atol=0)
+        top = np.sort(np.argsort(-got.numpy(), kind="stable")[:k])
+        assert torch.equal(out.gaussians.means[t], g.means[t, top])
+
+
 def test_a_budget_keeps_k_per_target_ranked_as_asked(caplog):
     torch.manual_seed(1)
     plain = UniqueSplat.from_preset("tiny", variant="full").eval()

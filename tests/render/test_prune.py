@@ -1,7 +1,7 @@
 """Per-target pruning (``usplat_dr.render.prune``) against the dense float64 reference
 renderer (``usplat_dr.render.reference``): exact culling drops only Gaussians that render
-nothing, merging follows the moment-matching equations, the budget keeps the most important
-ones."""
+nothing, merging follows the moment-matching equations, the footprint scores (the budget's
+``"footprint"`` ranking) are opacity x screen area where the culling keeps a Gaussian."""
 
 import math
 
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from usplat_dr.render import RasterSettings, rasterize
-from usplat_dr.render.prune import PruneSettings, prune, screen_footprint
+from usplat_dr.render.prune import PruneSettings, footprint_scores, prune, screen_footprint
 from usplat_dr.render.reference import project_ref, render_ref
 
 
@@ -155,24 +155,25 @@ def test_merging_duplicates_keeps_the_image():
     assert -10 * math.log10(mse) > 30
 
 
-def test_keep_fraction_keeps_the_most_important():
-    ext, k, near, _, shape, means, cov, sh, op = (x[:1] if torch.is_tensor(x) else x
-                                                  for x in random_scene())
+def test_footprint_scores_are_opacity_times_area_where_visible():
+    ext, k, near, _, shape, means, cov, sh, op = random_scene()
+    scores = footprint_scores(ext, k, near, shape, means, cov, op)
     full = prune(ext, k, near, shape, means, cov, sh, op, PruneSettings())
-    p = prune(ext, k, near, shape, means, cov, sh, op, PruneSettings(keep_fraction=0.1))
-    assert p.counts.item() == round(0.1 * full.counts.item())  # a tenth of the visible
-    # float64 importance from the reference projection: opacity x 3-sigma ellipse area
-    _, _, conic, _, _, _ = project_ref(ext[0].double(), k[0].double(), near[0], shape[1],
-                                       shape[0], means[0].double(), cov[0].double())
-    det2 = 1 / (conic[:, 0] * conic[:, 2] - conic[:, 1] ** 2)
-    score = op[0].double() * (9 * math.pi * det2.sqrt()).clamp(max=shape[0] * shape[1])
-    kept_scores = sorted(score[[i for i, x in enumerate(means[0].tolist())
-                                if x in p.means[0].tolist()]].tolist())
-    visible = {tuple(x) for x in full.means[0, :full.counts[0]].tolist()}
-    all_visible = sorted(score[[i for i, x in enumerate(means[0].tolist())
-                                if tuple(x) in visible]].tolist())
-    # the kept ones are the top of the visible ones (float32 vs float64 scores: 1e-4 rel.)
-    assert kept_scores[0] >= all_visible[-len(kept_scores)] * (1 - 1e-4)
+    for bi in range(2):
+        # culled ones score -1: exactly those that culling drops
+        visible = {tuple(x) for x in full.means[bi, :full.counts[bi]].tolist()}
+        kept = [tuple(x) in visible for x in means[bi].tolist()]
+        assert torch.equal(scores[bi] >= 0, torch.tensor(kept))
+        assert (scores[bi][~torch.tensor(kept)] == -1).all()
+        # float64 importance from the reference projection: opacity x 3-sigma ellipse area
+        _, _, conic, _, _, _ = project_ref(ext[bi].double(), k[bi].double(), near[bi], shape[1],
+                                           shape[0], means[bi].double(), cov[bi].double())
+        det2 = 1 / (conic[:, 0] * conic[:, 2] - conic[:, 1] ** 2)
+        ref = op[bi].double() * (9 * math.pi * det2.sqrt()).clamp(max=shape[0] * shape[1])
+        mask = torch.tensor(kept)
+        # float32 projection against float64: 1e-4 relative covers the 2D covariance's
+        # rounding (the scores span orders of magnitude; a wrong area factor is off by >= 2x)
+        assert torch.allclose(scores[bi][mask].double(), ref[mask], rtol=1e-4, atol=0)
 
 
 def test_padding_renders_each_entry_as_alone():
@@ -191,7 +192,5 @@ def test_padding_renders_each_entry_as_alone():
 
 
 def test_settings_are_checked():
-    with pytest.raises(ValueError, match="keep_fraction"):
-        PruneSettings(keep_fraction=0.0)
     with pytest.raises(ValueError, match="merge_pixels"):
         PruneSettings(merge_pixels=-1.0)

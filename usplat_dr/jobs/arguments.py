@@ -4,6 +4,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from usplat_dr.model.budget import RANKINGS
+
 log = logging.getLogger(__name__)
 
 #: ``--device``'s help, the same for every command that takes one.
@@ -76,7 +78,7 @@ def gaussians_argument(text: str) -> int | float:
     return value
 
 
-class _RenamedOption(argparse.Action):
+class RenamedOption(argparse.Action):
     """Stores the value as usual; given under an old name (any option string but the first),
     says once that the option was renamed."""
 
@@ -92,7 +94,7 @@ def add_image_shape_option(p: argparse.ArgumentParser, default, help_text: str) 
     image size; ``--resolution``, its old name in ``synth``, ``import`` and ``fit``, still
     works, with a line saying so."""
     p.add_argument("--image-shape", "--resolution", dest="image_shape", type=at_least(4),
-                   nargs=2, default=default, metavar=("H", "W"), action=_RenamedOption,
+                   nargs=2, default=default, metavar=("H", "W"), action=RenamedOption,
                    help=help_text)
 
 
@@ -102,11 +104,12 @@ def add_budget_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gaussians", type=gaussians_argument, metavar="K",
                    help="keep K Gaussians per target view: a count (5000) or a fraction of "
                    "them (0.3 or 30%%), the most important by --rank-by (default: all)")
-    p.add_argument("--rank-by", choices=["learned", "dither", "opacity", "random"],
+    p.add_argument("--rank-by", choices=RANKINGS,
                    help="how --gaussians ranks them: learned (the model's importance head, "
                    "the kept ones adapted to the budget), dither (the head's untrained start: "
                    "ordered dithering of opacity, the coverage rule; the better one for "
-                   "budgets of 50%% and more), opacity or random (seeded), the controls "
+                   "budgets of 50%% and more), footprint (opacity x screen area for the "
+                   "target camera), opacity or random (seeded), the controls "
                    "(default: learned where the model has the head, else dither, with a "
                    "warning)")
 

@@ -14,12 +14,12 @@ them alike:
   measurement through ``/proc/self/clear_refs``; CUDA: ``max_memory_allocated``);
 - parameters, Gaussians rendered per view, and accuracy: PSNR, SSIM, depth AbsRel.
 
-Axes: configurations (size preset x variant), Gaussian budgets
-(``usplat_dr.render.prune.PRUNES``: everything, exact culling, merging near-duplicates, keeping
-the most important fraction) at the training resolution, render resolutions (default
-pruning), and with ``--fractions`` the Gaussian budget chosen at inference
-(``UniqueSplat.forward(budget=...)``, model/budget.py) at each fraction, ranked by each of
-``--rank-by``: ``learned`` (models with an importance head), ``dither`` (its untrained start),
+Axes: configurations (size preset x variant), pruning (``usplat_dr.render.prune.PRUNES``:
+everything, exact culling, merging near-duplicates) at the training resolution, render
+resolutions (default pruning), and with ``--gaussians`` the Gaussian budget chosen at inference
+(``UniqueSplat.forward(budget=GaussianBudget(...))``, model/budget.py) at each count or
+fraction, ranked by each of ``--rank-by``: ``learned`` (models with an importance head),
+``dither`` (its untrained start), ``footprint`` (opacity x screen area, per target camera),
 ``opacity`` and ``random``, the controls; ``--splits`` adds the stress splits (rows per
 split). Writes ``bench.csv``, ``bench.png`` (accuracy against time per view with the Pareto
 front; accuracy against Gaussians rendered, with its own front), ``bench.md`` (the table)
@@ -47,7 +47,12 @@ from usplat_dr.evaluation import depth_metrics, nan_mean, synthetic_indices
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.io import atomic_open, write_json
-from usplat_dr.jobs.arguments import DEVICE_HELP, non_negative_int
+from usplat_dr.jobs.arguments import (
+    DEVICE_HELP,
+    RenamedOption,
+    gaussians_argument,
+    non_negative_int,
+)
 from usplat_dr.jobs.report import bench_chart, bench_table
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS, StudyHooks
@@ -189,14 +194,24 @@ def _examples(data: Path, model_size: int, render_sizes, split: str = "standard"
 MEASURES = ("wall", "cpu", "render", "psnr", "ssim", "abs_rel", "gaussians", "kept", "mem")
 
 
-def budget_label(fraction: float, rank_by: str) -> str:
-    """A Gaussian budget's row name: ``learned30%``, ``opacity10%``, ``random5%``."""
-    return f"{rank_by}{100 * fraction:g}%"
+def budget_label(keep: float | int,  # noqa: PYI041 (beartype: int is no float)
+                 rank_by: str) -> str:
+    """A Gaussian budget's row name: ``learned30%``, ``opacity10%``, ``random5%`` for
+    fractions, ``footprint5000`` for a count.
+
+    Examples:
+        >>> budget_label(0.3, "learned"), budget_label(5000, "footprint")
+        ('learned30%', 'footprint5000')
+    """
+    if isinstance(keep, int):
+        return f"{rank_by}{keep}"
+    return f"{rank_by}{100 * keep:g}%"
 
 
-def budget_settings(fractions, rank_by=RANKINGS) -> list[tuple[str, float, str]]:
-    """``(name, fraction, rank_by)`` of the Gaussian budgets to measure."""
-    return [(budget_label(f, r), f, r) for r in rank_by for f in fractions]
+def budget_settings(gaussians, rank_by=RANKINGS) -> list[tuple[str, float | int, str]]:
+    """``(name, keep, rank_by)`` of the Gaussian budgets to measure: each of ``gaussians``
+    (counts or fractions) ranked by each of ``rank_by``."""
+    return [(budget_label(k, r), k, r) for r in rank_by for k in gaussians]
 
 
 def _settings(prunes: dict, model_size: int, render_sizes: list[int]) -> list[tuple]:
@@ -331,16 +346,16 @@ def _aggregate(acc: dict, models: dict, scenes: dict, budgets=()) -> list[dict]:
 
 @torch.no_grad()
 def measure(models: dict, data: Path, model_size: int, render_sizes=None, prunes=None,
-            device="cpu", progress: bool = True, fractions=(), rank_by=RANKINGS,
+            device="cpu", progress: bool = True, gaussians=(), rank_by=RANKINGS,
             splits=("standard",)) -> list[dict]:
     """One row per (configuration, split, pruning or budget, render size); see the module
     docstring. Split by split, scene by scene, each configuration in turn (``_time_scene``,
-    ``_time_budgets`` at the model's size for ``fractions`` x ``rank_by``; a learned ranking
+    ``_time_budgets`` at the model's size for ``gaussians`` x ``rank_by``; a learned ranking
     only for models with an importance head), then the rows (``_aggregate``)."""
     device = torch.device(device)
     render_sizes = sorted(set(render_sizes or (model_size // 2, model_size)))
     settings = _settings(PRUNES if prunes is None else prunes, model_size, render_sizes)
-    budgets = budget_settings(fractions, rank_by)
+    budgets = budget_settings(gaussians, rank_by)
     names = [(name, s) for name, _, s in settings] + [(name, model_size) for name, *_ in budgets]
     acc = {(c, split, name, s): {k: [] for k in MEASURES}
            for split in splits for c in models for name, s in names}
@@ -419,7 +434,7 @@ def write_results(rows: list[dict], model_size: int, out: Path) -> dict:
 
 def run_bench(out: str | Path = "outputs/demo", recipe: str = "full", configs=DEFAULT_CONFIGS,
               render_sizes=None, prunes=None, device: str = "cpu", seed: int = 0,
-              jobs: int = 0, fractions=(), rank_by=RANKINGS, splits=("standard",),
+              jobs: int = 0, gaussians=(), rank_by=RANKINGS, splits=("standard",),
               checkpoints: dict | None = None) -> dict:
     """Train what is missing, measure, write ``out/bench/``; returns the decisions."""
     if recipe not in RECIPES:
@@ -434,7 +449,7 @@ def run_bench(out: str | Path = "outputs/demo", recipe: str = "full", configs=DE
     for config, path in (checkpoints or {}).items():  # --checkpoint PRESET:VARIANT:TAG=PATH
         models[config] = load(path, device)
     rows = measure(models, out / "data", size, render_sizes, prunes, device,
-                   fractions=fractions, rank_by=rank_by, splits=splits)
+                   gaussians=gaussians, rank_by=rank_by, splits=splits)
     decision = write_results(rows, size, out / "bench")
     print(bench_table(rows))
     print(json.dumps(decision, indent=1))
@@ -450,15 +465,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(only the --checkpoint models) (default: tiny a/b/c, small c, paper c)")
     p.add_argument("--prunes", type=prunes_argument, default=PRUNES,
                    help="comma-separated pruning settings (default: all, cull, cull+merge1px, "
-                   "cull+merge2px, keep50%%, keep25%%)")
+                   "cull+merge2px)")
     p.add_argument("--render-sizes", type=sizes_argument, default=None,
                    help="comma-separated render sizes <= the data's (default: half and full)")
-    p.add_argument("--fractions", type=fractions_argument, default=(),
-                   help="comma-separated fractions of the Gaussians for the budget chosen at "
-                   "inference, e.g. 0.05,0.1,0.3,0.5 (default: none)")
+    p.add_argument("--gaussians", "--fractions", dest="gaussians", type=gaussians_list,
+                   default=(), action=RenamedOption, metavar="K[,K...]",
+                   help="Gaussian budgets chosen at inference, each a count (5000) or a "
+                   "fraction (0.3 or 30%%) of each target's Gaussians, comma-separated, e.g. "
+                   "0.05,0.1,0.3,0.5 (default: none)")
     p.add_argument("--rank-by", type=rank_by_argument, default=RANKINGS,
                    help="comma-separated rankings of the budget: learned (models with an "
-                   "importance head), dither, opacity, random (default: all four)")
+                   "importance head), dither, footprint, opacity, random (default: all)")
     p.add_argument("--splits", type=lambda t: tuple(t.split(",")), default=("standard",),
                    help="comma-separated splits of the demo's data, e.g. standard,"
                    "extrapolation (default: standard; the decisions use the first)")
@@ -476,16 +493,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "core other processes leave free, or USPLAT_THREADS)")
 
 
-def fractions_argument(text: str) -> tuple[float, ...]:
-    """``--fractions``: comma-separated fractions in (0, 1]."""
-    try:
-        values = tuple(float(t) for t in text.split(","))
-    except ValueError:
-        values = ()
-    if not values or not all(0 < f <= 1 for f in values):
-        raise argparse.ArgumentTypeError(f"must be comma-separated fractions in (0, 1], got "
-                                         f"{text!r}")
-    return values
+def gaussians_list(text: str) -> tuple[float | int, ...]:
+    """``--gaussians``: comma-separated budgets, each as ``usplat eval --gaussians`` takes one.
+
+    Examples:
+        >>> gaussians_list("0.1,30%,5000")
+        (0.1, 0.3, 5000)
+    """
+    return tuple(gaussians_argument(t) for t in text.split(","))
 
 
 def rank_by_argument(text: str) -> tuple[str, ...]:
@@ -547,6 +562,6 @@ def run(args: argparse.Namespace) -> int:
     if args.threads:
         set_threads(args.threads, args.device)
     run_bench(args.out, "quick" if args.quick else "full", args.configs, args.render_sizes,
-              args.prunes, device=args.device, jobs=args.jobs, fractions=args.fractions,
+              args.prunes, device=args.device, jobs=args.jobs, gaussians=args.gaussians,
               rank_by=args.rank_by, splits=args.splits, checkpoints=dict(args.checkpoints))
     return 0

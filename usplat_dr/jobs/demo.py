@@ -47,8 +47,8 @@ from usplat_dr.training.run_log import curves, stability
 
 #: The Gaussian budgets of the demo's speed/accuracy bench (fractions of the Gaussians, each
 #: ranked by the budget stage's learned importance (the BUDGETED add-ons, unbudgeted the very
-#: SHIPPED models), its untrained start (dither) and the opacity and random controls); the
-#: first is also the one whose allocation the report shows.
+#: SHIPPED models), its untrained start (dither), the screen footprint, and the opacity and
+#: random controls); the first is also the one whose allocation the report shows.
 BUDGET_FRACTIONS = (0.1, 0.3)
 
 log = logging.getLogger(__name__)
@@ -122,7 +122,7 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
     t = time.perf_counter()
     bench_models = {BenchConfig(PRESET, v): load_model(shipped[BUDGETED[v]])[0]
                     for v in ("baseline", "full")}
-    bench = write_results(measure(bench_models, data, b.size, fractions=BUDGET_FRACTIONS),
+    bench = write_results(measure(bench_models, data, b.size, gaussians=BUDGET_FRACTIONS),
                           b.size, out / "bench_demo")
     timings["speed/accuracy bench"] = time.perf_counter() - t
     t = time.perf_counter()  # where the smallest budget goes in (c), scene by scene

@@ -338,9 +338,8 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
 
 
 #: Markers of ``bench_chart``: pruning settings by name, Gaussian budgets by ranking.
-PRUNE_MARKERS = {"all": "o", "cull": "s", "cull+merge1px": "D", "cull+merge2px": "d",
-                 "keep50%": "v", "keep25%": "^"}
-RANK_MARKERS = {"learned": "*", "dither": "p", "opacity": "P", "random": "X"}
+PRUNE_MARKERS = {"all": "o", "cull": "s", "cull+merge1px": "D", "cull+merge2px": "d"}
+RANK_MARKERS = {"learned": "*", "dither": "p", "footprint": "v", "opacity": "P", "random": "X"}
 
 
 def _marker(r: dict) -> str:

@@ -21,6 +21,9 @@ fraction in (0, 1] (``budget_count``). ``rank_by`` chooses the ranking:
 - ``"dither"``: the same with no head (r = 0) and the adaptation's coverage rule alone: what the
   untrained head does (bit for bit), so that ``"learned"`` against ``"dither"`` is what the
   training added, and what a model without the head does by default.
+- ``"footprint"``: how much of the target's image each Gaussian covers, opacity x the area of
+  its 3-sigma ellipse for the target camera, those the rasteriser would skip last
+  (``render.prune.footprint_scores``): the rule-based ranking of pruning, per target view.
 - ``"opacity"`` and ``"random"`` (seeded): the controls of ``usplat bench``'s chart.
 
 Selection is per set, the K highest scores, ties to the lower index (a stable descending sort:
@@ -71,7 +74,7 @@ from torch import Tensor, nn
 from usplat_dr.model.types import Gaussians
 
 #: The rankings ``apply_budget`` knows.
-RANKINGS = ("learned", "dither", "opacity", "random")
+RANKINGS = ("learned", "dither", "footprint", "opacity", "random")
 #: Per-Gaussian features the importance head gives the adaptation, beside its logit.
 ADAPT_FEATURES = 4
 #: Bounds of the adaptation's outputs: at most e^3 ~ 20 copies' coverage, scales within
@@ -95,7 +98,8 @@ class GaussianBudget:
     """Keep ``keep`` Gaussians per target view: a count (an int >= 1) or a fraction in (0, 1]
     of them (``budget_count``), ranked by ``rank_by``: ``"learned"`` (the importance head,
     the kept Gaussians adapted to the budget), ``"dither"`` (what the untrained head does),
-    ``"opacity"`` or ``"random"`` (seeded with ``seed``), the controls; ``None``: learned where
+    ``"footprint"`` (opacity x screen area for the target camera), ``"opacity"`` or
+    ``"random"`` (seeded with ``seed``), the controls; ``None``: learned where
     the model has the head, else dither (with a warning). ``tau`` > 0: the relaxed mask of
     training instead of the hard top-K. ``UniqueSplat.forward(budget=...)`` takes it.
 
@@ -326,13 +330,19 @@ def log_density(opacities: Float[Tensor, "s g"], logits: Float[Tensor, "s g"] | 
 
 def ranking_scores(rank_by: str, opacities: Float[Tensor, "s g"],
                    logits: Float[Tensor, "s g"] | None = None,
-                   dither: Float[Tensor, " g"] | None = None, seed: int = 0
-                   ) -> Float[Tensor, "s g"]:
-    """The scores ``rank_by`` ranks by: the opacity, uniform noise from a generator seeded with
-    ``seed`` (drawn on the CPU: the same selection on every device), or the log-density (with
-    the head's ``logits`` for ``"learned"``) plus the ``dither`` offsets (``dither_offsets``)."""
+                   dither: Float[Tensor, " g"] | None = None, seed: int = 0,
+                   footprint: Float[Tensor, "s g"] | None = None) -> Float[Tensor, "s g"]:
+    """The scores ``rank_by`` ranks by: the opacity, the ``footprint`` scores given
+    (``render.prune.footprint_scores``), uniform noise from a generator seeded with ``seed``
+    (drawn on the CPU: the same selection on every device), or the log-density (with the
+    head's ``logits`` for ``"learned"``) plus the ``dither`` offsets (``dither_offsets``)."""
     if rank_by == "opacity":
         return opacities.detach()
+    if rank_by == "footprint":
+        if footprint is None:
+            raise ValueError("rank_by='footprint' needs the footprint scores of the target "
+                             "cameras (render.prune.footprint_scores)")
+        return footprint.detach()
     if rank_by == "random":
         g = torch.Generator().manual_seed(seed)
         return torch.rand(opacities.shape, generator=g).to(opacities.device)
@@ -347,13 +357,13 @@ def apply_budget(gaussians: Gaussians, budget, rank_by: str = "opacity",
                  features: Float[Tensor, "s g f"] | None = None,
                  head: ImportanceHead | None = None, dither: Float[Tensor, " g"] | None = None,
                  layout: tuple[int, int, int, int] | None = None, tau: float | None = None,
-                 seed: int = 0) -> Budgeted:
+                 seed: int = 0, footprint: Float[Tensor, "s g"] | None = None) -> Budgeted:
     """Keep ``budget`` (``budget_count``) of each set's Gaussians by ``rank_by`` (one of
     ``RANKINGS``; ``"dither"`` needs the ``dither`` offsets and the Gaussians' ``layout``
     (views, H, W, Gaussians per pixel), ``"learned"`` also the head's ``logits`` and
-    ``features`` and the ``head`` for the adaptation). ``tau``: ``None`` for the
-    hard top-K (K Gaussians per set), > 0 for the relaxed mask (all G, for training). See the
-    module docstring.
+    ``features`` and the ``head`` for the adaptation, ``"footprint"`` its scores per set).
+    ``tau``: ``None`` for the hard top-K (K Gaussians per set), > 0 for the relaxed mask (all
+    G, for training). See the module docstring.
 
     Examples:
         >>> g = Gaussians(means=torch.zeros(1, 4, 3), covariances=torch.eye(3).repeat(1, 4, 1, 1),
@@ -375,7 +385,7 @@ def apply_budget(gaussians: Gaussians, budget, rank_by: str = "opacity",
     learned = rank_by == "learned"
     if learned and (features is None or head is None or logits is None):
         raise ValueError("rank_by='learned' needs the importance head, its logits and features")
-    scores = ranking_scores(rank_by, gaussians.opacities, logits, dither, seed)
+    scores = ranking_scores(rank_by, gaussians.opacities, logits, dither, seed, footprint)
     adapted = rank_by in ("learned", "dither")
     if adapted and layout is None:
         raise ValueError(f"rank_by={rank_by!r} needs the Gaussians' layout")

@@ -45,7 +45,7 @@ from usplat_dr.model.hypernet.injection import adapter_layout, run_head, vb_layo
 from usplat_dr.model.hypernet.view_branch import ViewSpecificEmbedding
 from usplat_dr.model.predict import DEFAULT_FAR, DEFAULT_NEAR, Prediction, predict_views
 from usplat_dr.model.types import Gaussians
-from usplat_dr.render.prune import PruneSettings
+from usplat_dr.render.prune import PruneSettings, footprint_scores
 
 log = logging.getLogger(__name__)
 
@@ -440,7 +440,7 @@ class UniqueSplat(nn.Module):
                                                global_step, b, n, nb)
         kept = len(gaussians)
         if budget is not None:
-            gaussians, kept = self._budgeted(gaussians, depth, aux, images.device, v, b, n,
+            gaussians, kept = self._budgeted(gaussians, depth, aux, targets, (h, w), v, b, n,
                                              budget)
         aux["kept"] = torch.full((b, n), kept, device=images.device)
         # The context views' depth maps [B, V, H, W] (the first target's where they differ
@@ -457,11 +457,13 @@ class UniqueSplat(nn.Module):
             self.render_targets(out, targets, (h, w), background_color, settings, prune)
         return out
 
-    def _budgeted(self, gaussians: Gaussians, depth: DepthOutputs, aux: dict,
-                  device: torch.device, v: int, b: int, n: int,
+    def _budgeted(self, gaussians: Gaussians, depth: DepthOutputs, aux: dict, targets: Cameras,
+                  image_shape: tuple[int, int], v: int, b: int, n: int,
                   budget: GaussianBudget) -> tuple[Gaussians, int]:
         """``forward``'s budget: the kept Gaussians and K (model/budget.py); ``aux`` gets the
-        scores and the kept mask (and, while training, the unbudgeted Gaussians)."""
+        scores and the kept mask (and, while training, the unbudgeted Gaussians). ``targets``
+        and ``image_shape``: the target views, for the ``"footprint"`` ranking."""
+        device = gaussians.means.device
         rank_by = budget.rank_by
         if rank_by is None:
             rank_by = "learned" if self.importance is not None else "dither"
@@ -480,7 +482,12 @@ class UniqueSplat(nn.Module):
                              "'opacity' or 'random'")
         if budget_count(budget.keep, len(gaussians)) >= len(gaussians):
             return gaussians, len(gaussians)  # everything kept: nothing computed, nothing changed
-        logits = features = dither = None
+        logits = features = dither = footprint = None
+        if rank_by == "footprint":  # one set per target: [B*N, G]
+            footprint = footprint_scores(
+                targets.extrinsics.flatten(0, 1), targets.intrinsics.flatten(0, 1),
+                targets.near.flatten(0, 1), image_shape, gaussians.means.float(),
+                gaussians.covariances.float(), gaussians.opacities.float())
         if rank_by == "learned":
             with self._autocast(device):
                 logits, features = self.importance(depth.head_input, v, b)  # [B, G], [B, G, F]
@@ -492,7 +499,8 @@ class UniqueSplat(nn.Module):
         if rank_by in ("learned", "dither"):
             dither = dither_offsets(*layout, device=device)
         chosen = apply_budget(gaussians, budget.keep, rank_by, logits, features,
-                              self.importance, dither, layout, budget.tau, budget.seed)
+                              self.importance, dither, layout, budget.tau, budget.seed,
+                              footprint)
         if chosen.scores is not None:
             aux.update(importance=chosen.scores, kept_mask=chosen.kept_mask)
             if chosen.mask is not None:

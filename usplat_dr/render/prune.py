@@ -15,9 +15,10 @@ Two kinds of pruning, chosen in ``PruneSettings``:
   (``merge_color``, on the DC colour) are replaced by one moment-matched Gaussian: opacity
   1 - prod(1 - o_i) (the coverage of the stack at its centre), mean, covariance (spread of the
   means included) and SH coefficients weighted by opacity.
-- **Budget** (``keep_fraction``, approximate): of the Gaussians that survive culling, keep the
-  most important fraction, importance = opacity x screen-space area (clipped at the image's
-  area).
+
+Keeping a number of Gaussians is the model's Gaussian budget (``model/budget.py``,
+``GaussianBudget``); its ``"footprint"`` ranking scores with ``footprint_scores`` here: opacity
+x screen-space area for the target camera, after the culling rule.
 
 Pruned sets differ in size per target; ``prune`` pads them to the largest with Gaussians at
 the camera centre with opacity 0, which the rasteriser culls before any per-pixel work.
@@ -47,40 +48,32 @@ class PruneSettings:
     merge_pixels: float = 1.0  # cell edge in target pixels
     merge_depth: float = 0.02  # relative depth bin width (log-depth bins)
     merge_color: float = 0.1  # DC colour bin width (colour in [0, 1])
-    keep_fraction: float = 1.0
 
     def __post_init__(self):
         if self.merge_pixels <= 0 or self.merge_depth <= 0 or self.merge_color <= 0:
             raise ValueError("PruneSettings: merge_pixels, merge_depth and merge_color must be "
                              f"> 0, got {self.merge_pixels}, {self.merge_depth}, "
                              f"{self.merge_color}")
-        if not 0 < self.keep_fraction <= 1:
-            raise ValueError(f"PruneSettings.keep_fraction must be in (0, 1], got "
-                             f"{self.keep_fraction}")
 
     @property
     def exact(self) -> bool:
-        return not self.merge and self.keep_fraction == 1.0
+        return not self.merge
 
     def label(self) -> str:
         parts = ["cull" if self.cull else "all"]
         if self.merge:
             parts.append(f"merge{self.merge_pixels:g}px")
-        if self.keep_fraction < 1:
-            parts.append(f"keep{self.keep_fraction:g}")
         return "+".join(parts)
 
 
 #: Named settings, from rendering every Gaussian (``"all"``: no pruning) through exact culling
-#: to merging and budgets: the Gaussian-budget axis of ``usplat bench``, also timed by
-#: train/bench/prune.py.
+#: to merging: the pruning axis of ``usplat bench`` (its ``--gaussians`` the budget axis), also
+#: timed by train/bench/prune.py.
 PRUNES: dict[str, PruneSettings | None] = {
     "all": None,
     "cull": PruneSettings(),
     "cull+merge1px": PruneSettings(merge=True),
     "cull+merge2px": PruneSettings(merge=True, merge_pixels=2.0),
-    "keep50%": PruneSettings(keep_fraction=0.5),
-    "keep25%": PruneSettings(keep_fraction=0.25),
 }
 
 
@@ -161,26 +154,11 @@ def prune(extrinsics: Float[Tensor, "b 4 4"], intrinsics: Float[Tensor, "b 3 3"]
     Inference only (no gradients): culling drops nothing that renders, so training gains
     nothing from it, and merging is not meant to be differentiated.
     """
-    bsz, g = opacities.shape
-    h, w = image_shape
+    bsz = opacities.shape[0]
     fp = screen_footprint(extrinsics, intrinsics, near, image_shape, means, covariances)
     keep = torch.ones_like(opacities, dtype=torch.bool)
     if settings.cull:
-        # alpha = o exp(-q / 2) >= 1/255 inside d^T conic d <= q_max = 2 ln(255 o), an ellipse
-        # with half-extents sqrt(q_max a) and sqrt(q_max c) (a, c: the 2D covariance diagonal)
-        q_max = 2 * torch.log((opacities * 255).clamp(min=1))
-        keep = (fp["valid"] & (opacities >= ALPHA_MIN)
-                & _meets_image(fp["u"], fp["radius"], w) & _meets_image(fp["v"], fp["radius"], h)
-                & _reaches_pixels(fp["u"], (q_max * fp["a"]).sqrt(), w)
-                & _reaches_pixels(fp["v"], (q_max * fp["c"]).sqrt(), h))
-    if settings.keep_fraction < 1:  # of those that survive culling, per batch entry
-        area = (torch.pi * fp["det"].clamp(min=0).sqrt() * 9).clamp(max=h * w)  # 3-sigma
-        score = torch.where(keep, opacities * area, torch.full_like(area, -1.0))
-        order = score.argsort(dim=1, descending=True, stable=True)
-        rank = torch.empty_like(order).scatter_(
-            1, order, torch.arange(g, device=order.device).expand(bsz, g).contiguous())
-        budget = (keep.sum(1, keepdim=True) * settings.keep_fraction).round().clamp(min=1)
-        keep &= rank < budget
+        keep = _visible(fp, opacities, image_shape)
     batch_idx, gauss_idx = keep.nonzero(as_tuple=True)
     sel = dict(means=means[batch_idx, gauss_idx], cov=covariances[batch_idx, gauss_idx],
                sh=harmonics[batch_idx, gauss_idx], opacity=opacities[batch_idx, gauss_idx])
@@ -188,6 +166,33 @@ def prune(extrinsics: Float[Tensor, "b 4 4"], intrinsics: Float[Tensor, "b 3 3"]
         sel, batch_idx = _merge(sel, batch_idx, {k: v[batch_idx, gauss_idx]
                                                  for k, v in fp.items()}, settings)
     return _pad(sel, batch_idx, bsz, extrinsics)
+
+
+def _visible(fp: dict, opacities: Tensor, image_shape: tuple[int, int]) -> Tensor:
+    """The culling rule (module docstring): what the rasteriser would composite somewhere."""
+    h, w = image_shape
+    # alpha = o exp(-q / 2) >= 1/255 inside d^T conic d <= q_max = 2 ln(255 o), an ellipse
+    # with half-extents sqrt(q_max a) and sqrt(q_max c) (a, c: the 2D covariance diagonal)
+    q_max = 2 * torch.log((opacities * 255).clamp(min=1))
+    return (fp["valid"] & (opacities >= ALPHA_MIN)
+            & _meets_image(fp["u"], fp["radius"], w) & _meets_image(fp["v"], fp["radius"], h)
+            & _reaches_pixels(fp["u"], (q_max * fp["a"]).sqrt(), w)
+            & _reaches_pixels(fp["v"], (q_max * fp["c"]).sqrt(), h))
+
+
+@torch.no_grad()
+def footprint_scores(extrinsics: Float[Tensor, "b 4 4"], intrinsics: Float[Tensor, "b 3 3"],
+                     near: Float[Tensor, " b"], image_shape: tuple[int, int],
+                     means: Float[Tensor, "b g 3"], covariances: Float[Tensor, "b g 3 3"],
+                     opacities: Float[Tensor, "b g"]) -> Float[Tensor, "b g"]:
+    """How much of each batch entry's image a Gaussian covers: opacity x the area of its
+    3-sigma ellipse (clipped at the image's area), -1 where the culling rule drops it (the
+    budget's ``"footprint"`` ranking, ``model/budget.py``)."""
+    h, w = image_shape
+    fp = screen_footprint(extrinsics, intrinsics, near, image_shape, means, covariances)
+    area = (torch.pi * fp["det"].clamp(min=0).sqrt() * 9).clamp(max=h * w)
+    return torch.where(_visible(fp, opacities, image_shape), opacities * area,
+                       torch.full_like(area, -1.0))
 
 
 def _merge(sel: dict, batch_idx: Tensor, fp: dict, s: PruneSettings) -> tuple[dict, Tensor]:
