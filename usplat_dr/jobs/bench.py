@@ -483,7 +483,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    type=checkpoint_argument, metavar="PRESET:VARIANT:TAG=PATH",
                    help="also measure this checkpoint (a file or a shipped name), labelled "
                    "e.g. 'tiny (c) budget' for tiny:c:budget=...; repeatable")
-    p.add_argument("--quick", action="store_true", help="the demo's quick budget (CI)")
+    p.add_argument("--quick", action="store_true", help="the demo's quick recipe (CI)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                    help=DEVICE_HELP)
     p.add_argument("--jobs", type=non_negative_int, default=0,

@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="outputs/demo",
                    help="the report folder (report.md, its PNGs, the data and runs)")
-    p.add_argument("--quick", action="store_true", help="a tiny budget (CI): a minute or two")
+    p.add_argument("--quick", action="store_true", help="the quick recipe (CI): a minute or two")
     p.add_argument("--jobs", type=non_negative_int, default=0,
                    help="Mitsuba worker processes (0: auto)")
 
