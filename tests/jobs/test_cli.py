@@ -113,8 +113,8 @@ def test_render_demo_writes_images(tmp_path):
      "argument --gaussians: must be a count"),
     (["render", "--checkpoint", "c", "--gaussians", "30%", "--rank-by", "size"],
      "argument --rank-by: invalid choice: 'size'"),
-    (["bench", "--gaussians", "0.1,1.5"], "--gaussians/--fractions: must be a count (an "
-     "integer >= 1)"),
+    (["bench", "--gaussians", "0.1,1.5"],
+     "--gaussians/--fractions: must be a count (an integer >= 1)"),
     (["bench", "--fractions", "0.1,0"], "--gaussians/--fractions: must be a count"),
     (["bench", "--rank-by", "learned,size"], "--rank-by: unknown ['size']"),
     (["bench", "--checkpoint", "tiny:c=x.pt"], "--checkpoint: must be PRESET:VARIANT:TAG=PATH"),

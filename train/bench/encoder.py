@@ -2,10 +2,12 @@
 2 threads (``--threads``), ``inference_mode``, the RealEstate10K configuration with random weights.
 
 Each configuration runs in its own process (so its peak RSS is its own), interleaved
-``--rounds`` times; each process times ``--repeats`` forwards after one warm-up and reports the
-median wall time, process CPU time per forward and peak RSS. Baseline, measured in the same
-run: our network with the reference's plane sweep (``cost_volume_method="warp"`` with all 128
-candidates warped at once, i.e. the full warped feature volume the official code builds).
+``--rounds`` times; each process times ``--repeats`` forwards after one warm-up
+(``usplat_dr.evaluation.timing.interleaved``, this checkout's) and reports the median wall time,
+process CPU time per forward, peak RSS and the line naming the machine (printed with the
+table). Baseline, measured in the same run: our network with the reference's plane sweep
+(``cost_volume_method="warp"`` with all 128 candidates warped at once, i.e. the full warped
+feature volume the official code builds).
 Then the default one under bfloat16 autocast (the model's ``inference_precision =
 "bfloat16"``), the default one under other allocator settings (environment variables), and,
 with ``--previous DIR``, the default one with the code of an earlier checkout (ratios against
@@ -19,10 +21,13 @@ for reference: 4.9 s, 1.7 GiB.
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
+from pathlib import Path
+
+#: This checkout's timing helper, loaded from its file in every measuring process (``timing``).
+TIMING = Path(__file__).resolve().parents[2] / "usplat_dr" / "evaluation" / "timing.py"
 
 CONFIGS = {
     "baseline: full warped volume": {"cost_volume_method": "warp", "cost_volume_chunk": 128},
@@ -39,10 +44,23 @@ CONFIGS = {
 }
 
 
+def timing():
+    """This checkout's ``usplat_dr.evaluation.timing``, loaded from its file (it needs only the
+    standard library): a ``--previous`` process imports that checkout's usplat_dr, which may
+    predate the helper (2026-11-27) or time differently, and every configuration of a run must
+    be timed alike."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("usplat_bench_timing", TIMING)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # the dataclass decorator looks its module up
+    spec.loader.exec_module(module)
+    return module
+
+
 def child(cfg: dict, size: int, repeats: int, out: str, threads: int) -> None:
     import contextlib
     import resource
-    import time
 
     import torch
 
@@ -61,21 +79,22 @@ def child(cfg: dict, size: int, repeats: int, out: str, threads: int) -> None:
     k = torch.tensor([[0.86, 0, 0.5], [0, 0.86, 0.5], [0, 0, 1]]).repeat(1, 2, 1, 1)
     x = torch.rand(1, 2, 3, size, size, generator=torch.Generator().manual_seed(1))
     args = (x, e, k, torch.ones(1, 2), 100 * torch.ones(1, 2))
-    walls, cpus = [], []
     # (each forward runs while the previous one's Gaussians are still held, as in an
     # evaluation loop: ~60 MiB at 256x256)
+    held = [None]
+    helper = timing()
+
+    def forward():
+        held[0] = net(*args)
+
     with torch.inference_mode(), autocast:
-        g = net(*args)
-        for _ in range(repeats):
-            w, c = time.perf_counter(), time.process_time()
-            g = net(*args)
-            walls.append(time.perf_counter() - w)
-            cpus.append(time.process_time() - c)
-    torch.save(g.means, out + ".means.pt")
+        t = helper.interleaved({"forward": forward}, repeats, warmup=1)["forward"]
+    torch.save(held[0].means, out + ".means.pt")
     with open(out, "w") as f:
-        json.dump({"wall": statistics.median(walls), "cpu": statistics.median(cpus),
+        json.dump({"wall": t.wall / 1e3, "cpu": t.cpu / 1e3,
                    "rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
-                   "package": os.path.dirname(usplat_dr.__file__)}, f)
+                   "package": os.path.dirname(usplat_dr.__file__),
+                   "machine": helper.machine_line()}, f)
 
 
 def main() -> None:
@@ -123,6 +142,7 @@ def main() -> None:
         ref_means = results["baseline: full warped volume"][0]["means"]
         base_wall = min(x["wall"] for x in results["baseline: full warped volume"])
         base_rss = min(x["rss_gib"] for x in results["baseline: full warped volume"])
+        print(results["baseline: full warped volume"][0]["machine"])  # a measuring process's
         print(f"encoder forward, 2 views {args.size}x{args.size}, batch 1, {args.threads} "
               f"thread(s), best of "
               f"{args.rounds} processes (median of {args.repeats} forwards each)")

@@ -30,10 +30,9 @@ import json
 import os
 import re
 import shutil
-import statistics
 import subprocess
 import sys
-import time
+from functools import partial
 from pathlib import Path
 
 import torch  # users' order: torch first (usplat_dr then cannot shorten OpenMP's spin)
@@ -69,7 +68,8 @@ def overrides(arm: dict, data: str, out: str, steps: int, seed: int) -> list[str
 
 def throughput(args) -> None:
     """Median wall and CPU time per step of each arm; arms of one thread count and numerics
-    share a process (interleaved step by step: a busy machine slows them alike)."""
+    share a process (interleaved step by step, ``usplat_dr.evaluation.timing.interleaved``: a
+    busy machine slows them alike), whose line naming the machine is printed with the table."""
     arms = [parse_arm(a) for a in args.arms]
     groups: dict[tuple, list] = {}
     for a in arms:
@@ -85,6 +85,8 @@ def throughput(args) -> None:
         out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
         rows += [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     base = next((r for r in rows if r["arm"] == args.arms[0]), rows[0])
+    for machine in dict.fromkeys(r["machine"] for r in rows):  # one per measuring process
+        print(machine)
     print(f"{'arm':<12} {'wall ms':>8} {'CPU ms':>8} {'ex/CPU-s':>9} {'ex/wall-s':>10} "
           f"{'x ' + base['arm']:>8}")
     for r in rows:
@@ -97,31 +99,35 @@ def throughput(args) -> None:
 
 def _throughput(args) -> None:
     from usplat_dr.config import load_config
+    from usplat_dr.evaluation.timing import interleaved, machine_line
     from usplat_dr.training import Trainer
 
     arms = [parse_arm(a) for a in args.arms]
-    trainers = {}
+    steps = {}
     for a in arms:
         torch.manual_seed(0)
-        trainers[a["name"]] = Trainer(load_config([RECIPE], overrides(
+        tr = Trainer(load_config([RECIPE], overrides(
             a, args.data, f"/tmp/epc_throughput/{a['name']}", 10**6, 0) + [
             "train.progress=false"]))
-    times: dict = {a["name"]: [] for a in arms}
-    for i in range(args.steps + 3):  # 3 warm-up steps
-        for name, tr in trainers.items():
-            batch = tr.batches.next()
-            w, c = time.perf_counter(), time.process_time()
-            tr.train_step(batch)
-            tr.step += 1
-            if i >= 3:
-                times[name].append((time.perf_counter() - w, time.process_time() - c))
+        # each arm's batches, read before the timing (the loop does not time data loading)
+        batches = iter([tr.batches.next() for _ in range(args.steps + 3)])
+        steps[a["name"]] = partial(train_step, tr, batches)
+    # 3 warm-up steps; then the arms interleaved step by step, in reverse order every other step
+    times = interleaved(steps, args.steps, warmup=3)
+    machine = machine_line()
     for a in arms:
-        wall = statistics.median(t[0] for t in times[a["name"]])
-        cpu = statistics.median(t[1] for t in times[a["name"]])
+        t = times[a["name"]]  # ms
         print(json.dumps({"arm": a["name"], "threads": a["threads"], "batch": a["batch"],
-                          "wall_ms": wall * 1e3, "cpu_ms": cpu * 1e3,
-                          "examples_per_cpu_s": a["batch"] / cpu,
-                          "examples_per_wall_s": a["batch"] / wall}))
+                          "wall_ms": t.wall, "cpu_ms": t.cpu,
+                          "examples_per_cpu_s": a["batch"] / (t.cpu / 1e3),
+                          "examples_per_wall_s": a["batch"] / (t.wall / 1e3),
+                          "machine": machine}))
+
+
+def train_step(trainer, batches) -> None:
+    """One optimiser step of ``trainer`` on the next of ``batches``."""
+    trainer.train_step(next(batches))
+    trainer.step += 1
 
 
 def train_arm(args) -> None:

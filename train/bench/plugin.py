@@ -5,15 +5,16 @@ Renders the same Gaussians from the same camera three ways, interleaved round by
 (reading the ellipsoids shape, building covariances, the [H, W, C] film layout and the
 sRGB-to-linear conversion), and the torch API ``rasterize``. Forward only, and forward +
 backward (``dr.backward`` through ``mi.render`` against the torch API's ``backward``). Prints
-median wall and process CPU time and the ratio to the baseline measured in the same run.
+median wall and process CPU time (``usplat_dr.evaluation.timing.interleaved``: one warm-up
+round, then the order reversed every other round) and the ratio to the baseline measured in
+the same run, under a line naming the machine.
 
     python train/bench/plugin.py                   # 20k Gaussians, 256x256, 7 rounds
     python train/bench/plugin.py --gaussians 100000 --size 512
 """
 
 import argparse
-import statistics
-import time
+from functools import partial
 
 import numpy as np
 
@@ -33,6 +34,7 @@ def main() -> None:
 
     mi.set_variant(args.variant)
 
+    from usplat_dr.evaluation.timing import interleaved, machine_line
     from usplat_dr.render import rasterize
     from usplat_dr.render.pipeline import rasterize_drjit
 
@@ -109,24 +111,16 @@ def main() -> None:
 
     ways = {"rasterize_drjit (baseline)": direct, "mi.render + usplat_splat": plugin,
             "torch rasterize": torch_api}
+    print(machine_line())
     for backward in (False, True):
-        times = {k: ([], []) for k in ways}
-        for f in ways.values():  # compile and warm up
-            f(backward)
-        for _ in range(args.rounds):
-            for name, f in ways.items():
-                w0, c0 = time.perf_counter(), time.process_time()
-                f(backward)
-                times[name][0].append(time.perf_counter() - w0)
-                times[name][1].append(time.process_time() - c0)
-        base_w = statistics.median(times["rasterize_drjit (baseline)"][0])
-        base_c = statistics.median(times["rasterize_drjit (baseline)"][1])
+        times = interleaved({name: partial(f, backward) for name, f in ways.items()},
+                            args.rounds, warmup=1)  # the warm-up round compiles the kernels
+        base = times["rasterize_drjit (baseline)"]
         print(f"\n{'forward + backward' if backward else 'forward'}: {n} Gaussians, {s}x{s}, "
               f"median of {args.rounds} interleaved rounds")
-        for name, (w, c) in times.items():
-            mw, mc = statistics.median(w), statistics.median(c)
-            print(f"  {name:28s} wall {1000 * mw:8.1f} ms ({mw / base_w:.2f}x)   "
-                  f"CPU {1000 * mc:8.1f} ms ({mc / base_c:.2f}x)")
+        for name, t in times.items():
+            print(f"  {name:28s} wall {t.wall:8.1f} ms ({t.wall / base.wall:.2f}x)   "
+                  f"CPU {t.cpu:8.1f} ms ({t.cpu / base.cpu:.2f}x)")
 
 
 if __name__ == "__main__":

@@ -106,6 +106,7 @@ def measure(model, batches, size: int, grid: dict) -> dict:
         # the order rotates from scene to scene: the first render after the model runs on
         # colder caches
         names = list(grid)
+        # Own timing, not usplat_dr.evaluation.timing: pruning and rendering timed apart in a call.
         for name in names[i % len(names):] + names[:i % len(names)]:
             prune = grid[name]
             w0, c0 = time.perf_counter(), time.process_time()

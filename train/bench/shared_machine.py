@@ -64,6 +64,7 @@ def step_times(data: str, steps: int) -> None:
         f"dataset.roots=[{data}]", "output_dir=" + tempfile.mkdtemp(prefix="shared_bench_"),
         "model.variant=baseline", "train.progress=false", "threads=null"]))
     wall, cpu = [], []
+    # Own timing, not usplat_dr.evaluation.timing: one setting per process, against another's load.
     for i in range(steps + 3):
         batch = trainer.batches.next()
         w, c = time.perf_counter(), time.process_time()

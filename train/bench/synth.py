@@ -2,20 +2,23 @@
 
 Baseline, measured in the same run and interleaved: Mitsuba rendering the same scenes' colour
 images alone (no depth tracing, materials, PNG encoding, splits or chunk writing), so the ratio
-is the cost of everything around the renderer. Prints wall and process CPU time.
+is the cost of everything around the renderer. Prints wall and process CPU time
+(``usplat_dr.evaluation.timing.interleaved``: after a warm-up round, the best wall time and the
+median CPU time of two rounds, the second in reverse order) under a line naming the machine.
 
     python train/bench/synth.py [--scenes 6] [--target [--jobs 2]]
 """
 
 import argparse
 import tempfile
-import time
+from functools import partial
 
 import numpy as np
 
 from usplat_dr.data.synth import scene_seed, synthesize
 from usplat_dr.data.synth.render import mitsuba_dict, set_variant
 from usplat_dr.data.synth.scenes import KINDS, make_spec
+from usplat_dr.evaluation.timing import interleaved, machine_line
 
 
 def render_only(scenes: int, frames: int, res, spp: int = 64) -> None:
@@ -27,10 +30,9 @@ def render_only(scenes: int, frames: int, res, spp: int = 64) -> None:
             np.array(mi.render(scene, sensor=s, spp=spp))
 
 
-def timed(fn) -> tuple[float, float]:
-    w, c = time.perf_counter(), time.process_time()
-    fn()
-    return time.perf_counter() - w, time.process_time() - c
+def synth_set(tmp: str, scenes: int, frames: int, res, **kwargs) -> None:
+    """``usplat synth``'s work: a new set in a new folder under ``tmp``."""
+    synthesize(tempfile.mkdtemp(dir=tmp), scenes, frames, res, progress=False, **kwargs)
 
 
 def main() -> None:
@@ -44,28 +46,27 @@ def main() -> None:
     args = ap.parse_args()
     n, f = args.scenes, args.frames
     render_only(1, 2, (16, 16))  # warm up: compile kernels once
+    print(machine_line())
     for res in [(64, 64), (128, 128)]:
-        rows = {"synth": [], "mitsuba only": []}
-        for _ in range(2):  # interleaved
-            with tempfile.TemporaryDirectory() as d:
-                rows["synth"].append(timed(lambda: synthesize(d, n, f, res, progress=False,  # noqa: B023 (called in this iteration)
-                                                              previews=0)))
-            rows["mitsuba only"].append(timed(lambda: render_only(n, f, res)))  # noqa: B023 (called in this iteration)
-        base = min(w for w, _ in rows["mitsuba only"])
-        for name, runs in rows.items():
-            w = min(r[0] for r in runs)
-            c = min(r[1] for r in runs)
+        with tempfile.TemporaryDirectory() as tmp:
+            rows = interleaved({"synth": partial(synth_set, tmp, n, f, res, previews=0),
+                                "mitsuba only": partial(render_only, n, f, res)},
+                               rounds=2, warmup=1)  # the first set's call is cold
+        base = rows["mitsuba only"].best / 1e3
+        for name, t in rows.items():
+            w, c = t.best / 1e3, t.cpu / 1e3
             print(f"{res[0]}x{res[1]} {f} frames  {name:13s} {60 * n / w:6.1f} scenes/min  "
                   f"wall {w / n:5.2f} s/scene  cpu {c / n:5.2f} s/scene  "
                   f"{w / base:4.2f}x mitsuba-only")
-    if args.target:
-        walls = {}
-        for jobs in (1, args.jobs):
-            with tempfile.TemporaryDirectory() as d:
-                w, c = timed(lambda: synthesize(d, 32, 24, (64, 64), progress=False, jobs=jobs))  # noqa: B023 (called in this iteration)
-            walls[jobs] = w
-            print(f"32 scenes x 24 frames 64x64, jobs={jobs}: wall {w:.0f} s (target <= 180 s), "
-                  f"cpu of this process {c:.0f} s, {walls[1] / w:.2f}x jobs=1")
+    if args.target:  # one run per process count (minutes each)
+        jobs = list(dict.fromkeys((1, args.jobs)))
+        with tempfile.TemporaryDirectory() as tmp:
+            runs = interleaved({f"jobs={j}": partial(synth_set, tmp, 32, 24, (64, 64), jobs=j)
+                                for j in jobs}, rounds=1, warmup=0)
+        for j in jobs:
+            w, c = runs[f"jobs={j}"].wall / 1e3, runs[f"jobs={j}"].cpu / 1e3
+            print(f"32 scenes x 24 frames 64x64, jobs={j}: wall {w:.0f} s (target <= 180 s), "
+                  f"cpu of this process {c:.0f} s, {runs['jobs=1'].wall / 1e3 / w:.2f}x jobs=1")
 
 
 if __name__ == "__main__":

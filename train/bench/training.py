@@ -29,6 +29,7 @@ import json
 import statistics
 import sys
 import time
+from functools import partial
 
 if "--torch-first" in sys.argv:  # users' order; usplat_dr cannot then shorten OpenMP's spin
     import torch  # noqa: F401
@@ -53,6 +54,7 @@ def old_group_grad_norms(trainer) -> dict:
     return {k: torch.sqrt(v).item() for k, v in sums.items()}
 
 
+# Own timing, not usplat_dr.evaluation.timing (whole calls): the phases inside one step.
 def timed_step(trainer, batch, old: bool) -> dict:
     import torch
 
@@ -114,6 +116,7 @@ def clip_ab(trainer, batch, repeats: int) -> tuple[float, float]:
     saved = [p.grad.clone() for p in params]
     clip = trainer.config.optimizer.gradient_clip
     times: tuple[list, list] = ([], [])
+    # Own loop, not usplat_dr.evaluation.timing: gradients are restored, untimed, before each call.
     for _ in range(repeats):
         for i in (0, 1):
             for p, g in zip(params, saved):
@@ -152,11 +155,19 @@ def awake_medians(args) -> dict:
             keeper.stop()
 
 
+def loss_step(trainer, batches, losses: list) -> None:
+    """One training step of ``trainer`` on the next of ``batches``; its loss goes to ``losses``."""
+    losses.append(trainer.train_step(next(batches))["loss"])
+    trainer.step += 1
+
+
 def scatter_ab(args) -> None:
     """``--scatter``: the training step with the packet backward against the lanes one."""
+    from usplat_dr.evaluation.timing import interleaved, machine_line
     from usplat_dr.model.decoder import DecoderSplatting
     from usplat_dr.render import RasterSettings
 
+    print(machine_line())
     print(f"threads={args.threads}, {args.steps} steps per configuration after 3 warm-up, "
           f"medians (ms); CPU = process CPU time")
     print("| variant | lanes ms (CPU ms) | packet ms (CPU ms) | packet / lanes | largest loss "
@@ -173,22 +184,12 @@ def scatter_ab(args) -> None:
                                                                backward_scatter=mode))
             pair[name] = tr
         batches = [pair["lanes"].batches.next() for _ in range(args.steps + 3)]
-        wall = {m: [] for m in pair}
-        cpu = {m: [] for m in pair}
         losses = {m: [] for m in pair}
-        for i, batch in enumerate(batches):
-            # ABBA: the trainer that runs second in a step pays ~3-5% (measured: cache and
-            # allocator state), so the order alternates
-            order = list(pair.items()) if i % 2 == 0 else list(pair.items())[::-1]
-            for mode, tr in order:
-                w0, c0 = time.perf_counter(), time.process_time()
-                stats = tr.train_step(batch)
-                tr.step += 1
-                if i >= 3:
-                    wall[mode].append(1000 * (time.perf_counter() - w0))
-                    cpu[mode].append(1000 * (time.process_time() - c0))
-                losses[mode].append(stats["loss"])
-        med = {m: (statistics.median(wall[m]), statistics.median(cpu[m])) for m in pair}
+        # 3 warm-up steps, then ABBA (usplat_dr.evaluation.timing.interleaved): the trainer
+        # that runs second in a step pays ~3-5% (measured: cache and allocator state)
+        t = interleaved({m: partial(loss_step, tr, iter(batches), losses[m])
+                         for m, tr in pair.items()}, args.steps, warmup=3)
+        med = {m: (t[m].wall, t[m].cpu) for m in pair}
         drift = max(abs(a - b) / abs(b) for a, b in zip(losses["packet"], losses["lanes"]))
         means = {m: statistics.fmean(v) for m, v in losses.items()}
         print(f"| {variant} | {med['lanes'][0]:.0f} ({med['lanes'][1]:.0f}) | "

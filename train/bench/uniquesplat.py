@@ -3,12 +3,14 @@
 
 Two timings per variant: the model (encoder once, Gaussians for every target) and the model
 plus rendering the 3 targets with the Dr.Jit rasteriser (LLVM on ``--device cpu``, CUDA on
-``--device cuda``, where each timing is bracketed by ``torch.cuda.synchronize``). Times: one
-process builds all variants and alternates them run by run (a, b, c, a, b, c, ...), so machine
-load hits them alike; ``--processes`` such processes, the best median reported. Memory: on a
-CPU the peak RSS of one process per variant; on a GPU, per variant, its weights plus the peak
-the torch allocator reached above what was allocated before its call (every variant's
-weights stay resident in the timing process; Dr.Jit's own CUDA memory is not counted).
+``--device cuda``, where each call ends with ``torch.cuda.synchronize``). Times: one process
+builds all variants and alternates them run by run, the order reversed every other run (a, b,
+c, c, b, a, ...: ``usplat_dr.evaluation.timing.interleaved``), so machine load hits them alike;
+``--processes`` such processes, the best median reported, under the timing process's line
+naming the machine. Memory: on a CPU the peak RSS of one process per variant; on a GPU, per
+variant, its weights plus the peak the torch allocator reached above what was allocated before
+one call, after the timed runs (every variant's weights stay resident in the timing process;
+Dr.Jit's own CUDA memory is not counted).
 Ratios are against (a) measured in the same run. The paper (A6000):
 (c)/(a) = 65.2 / 48.5 = 1.34, (b)/(a) = 1.002. (c) is the default model: W + Delta W on the
 four convolutions of both heads; ``--layers`` adds (c) with Delta W on fewer layers and with
@@ -20,10 +22,10 @@ a full-rank Delta W, the cost of each choice.
 
 import argparse
 import json
-import statistics
 import subprocess
 import sys
 import tempfile
+from functools import partial
 
 VARIANTS = {"(a) baseline": ("baseline", {}), "(b) agnostic": ("agnostic", {}),
             "(c) full": ("full", {})}
@@ -75,43 +77,48 @@ def synchronize(device: str) -> None:
         torch.cuda.synchronize()
 
 
+def cuda_peak_gib(model, args) -> float:
+    """The model's weights plus the peak the torch allocator reached above what was allocated
+    before one call with rendering, GiB."""
+    import torch
+
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    before = torch.cuda.memory_allocated()
+    model(*args, render=True)
+    torch.cuda.synchronize()
+    weights = sum(p.numel() * p.element_size() for p in model.parameters())
+    return (torch.cuda.max_memory_allocated() - before + weights) / 2**30
+
+
 def child_times(preset: str, size: int, configs: dict, device: str, repeats: int,
                 out: str) -> None:
-    import time
-
     import torch
+
+    from usplat_dr.evaluation.timing import interleaved, machine_line
 
     models = {name: build(preset, *cfg).to(device) for name, cfg in configs.items()}
     args = scene(size, device)
     result = {name: {"params": sum(p.numel() for p in m.parameters())}
               for name, m in models.items()}
+
+    def call(model, render):
+        model(*args, render=render)
+        synchronize(device)
+
     with torch.inference_mode():
         for render in (False, True):
             key = "render" if render else "model"
-            samples = {name: ([], []) for name in models}
-            for _ in range(2):  # warm-up: oneDNN primitives, the rasteriser's kernels
-                for m in models.values():
-                    m(*args, render=render)
-            for _ in range(repeats):
-                for name, m in models.items():
-                    synchronize(device)
-                    if device == "cuda":
-                        torch.cuda.reset_peak_memory_stats()
-                        before = torch.cuda.memory_allocated()
-                    w, c = time.perf_counter(), time.process_time()
-                    m(*args, render=render)
-                    synchronize(device)
-                    samples[name][0].append(time.perf_counter() - w)
-                    samples[name][1].append(time.process_time() - c)
-                    if device == "cuda" and render:  # one process is enough on a GPU
-                        weights = sum(p.numel() * p.element_size() for p in m.parameters())
-                        peak = torch.cuda.max_memory_allocated() - before + weights
-                        result[name]["gib"] = max(result[name].get("gib", 0.0), peak / 2**30)
-            for name, (walls, cpus) in samples.items():
-                result[name][key] = {"wall": statistics.median(walls),
-                                     "cpu": statistics.median(cpus)}
+            # warm-up: oneDNN primitives, the rasteriser's kernels
+            times = interleaved({name: partial(call, m, render) for name, m in models.items()},
+                                repeats, warmup=2)
+            for name, t in times.items():
+                result[name][key] = {"wall": t.wall / 1e3, "cpu": t.cpu / 1e3}
+        if device == "cuda":  # one process is enough on a GPU
+            for name, m in models.items():
+                result[name]["gib"] = cuda_peak_gib(m, args)
     with open(out, "w") as f:
-        json.dump(result, f)
+        json.dump({"machine": machine_line(), **result}, f)
 
 
 def child_memory(preset: str, size: int, cfg: list, out: str) -> None:
@@ -190,6 +197,7 @@ def main() -> None:
         print(f"\n{preset} preset, {size}x{size}, 2 context + 3 targets, batch 1, "
               f"{where}; variants alternated run by run, best of "
               f"{args.processes} processes (median of {args.repeats} runs each)")
+        print(runs[0]["machine"])  # the first timing process's
 
         def best(name, key, what, runs=runs):  # B023: this iteration's values
             return min(r[name][key][what] for r in runs)
