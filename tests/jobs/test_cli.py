@@ -85,21 +85,29 @@ def test_doctor_exits_nonzero_with_advice_without_llvm(tmp_path):
     assert "libllvm19" in r.stdout and "Problems" in r.stdout
 
 
-def test_render_demo_writes_images(tmp_path):
-    assert main(["-q", "render-demo", "--out", str(tmp_path), "--size", "48", "--views",
-                 "2"]) == 0
+def test_render_demo_writes_images(tmp_path, caplog):
+    assert main(["-q", "render-demo", "--out", str(tmp_path), "--image-shape", "40", "48",
+                 "--views", "2"]) == 0
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["contact_sheet.png"] + [f"view{v:02d}_{k}.png" for v in range(2)
                                              for k in ("alpha", "color", "depth")]
     color = np.asarray(Image.open(tmp_path / "view00_color.png"))
-    assert color.shape == (48, 48, 3)
+    assert color.shape == (40, 48, 3)
     assert color.std() > 10  # a scene, not a blank image
+    # the old square --size still works for one release, with a line saying so
+    with caplog.at_level(logging.WARNING, logger="usplat_dr.jobs.arguments"):
+        assert main(["render-demo", "--out", str(tmp_path / "old"), "--size", "16",
+                     "--views", "1"]) == 0
+    assert np.asarray(Image.open(tmp_path / "old" / "view00_color.png")).shape == (16, 16, 3)
+    assert "--size N is now --image-shape N N" in caplog.text
     alpha = np.asarray(Image.open(tmp_path / "view00_alpha.png"))
     assert 0 < (alpha > 128).mean() < 1  # foreground and sky
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["render-demo", "--size", "0"], "--size: must be an integer >= 1, got '0'"),
+    (["render-demo", "--image-shape", "0", "8"],
+     "--image-shape/--resolution: must be an integer >= 4, got '0'"),
+    (["render-demo", "--size", "2"], "--size: must be an integer >= 4, got '2'"),
     (["synth", "--out", "x", "--frames", "2"], "--frames: must be an integer >= 3"),
     (["fit", "--iterations", "zero"], "--iterations: must be an integer >= 1, got 'zero'"),
     (["bench", "--prunes", "all,nope"], "--prunes: unknown ['nope']"),

@@ -98,6 +98,24 @@ def add_image_shape_option(p: argparse.ArgumentParser, default, help_text: str) 
                    help=help_text)
 
 
+class _SquareSizeOption(argparse.Action):
+    """An old one-number size option (``--size N``): stores ``[N, N]`` as the image shape and
+    says once that the option is now ``--image-shape H W``."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        log.warning("%s N is now --image-shape N N; the old name is accepted for one more "
+                    "release", option_string)
+        setattr(namespace, self.dest, [values, values])
+
+
+def add_square_size_alias(p: argparse.ArgumentParser, name: str = "--size") -> None:
+    """``name`` N, a command's old square image size, kept for one release beside
+    ``--image-shape`` (``add_image_shape_option``): the same as ``--image-shape N N``."""
+    p.add_argument(name, dest="image_shape", type=at_least(4), action=_SquareSizeOption,
+                   default=argparse.SUPPRESS,
+                   metavar="N", help="the old name of --image-shape N N (one more release)")
+
+
 def add_budget_arguments(p: argparse.ArgumentParser) -> None:
     """``--gaussians`` and ``--rank-by``: a Gaussian budget per target view
     (``UniqueSplat.forward``'s ``budget`` and ``rank_by``; docs/model.md)."""

@@ -10,7 +10,12 @@ import numpy as np
 import torch
 
 from usplat_dr.io.images import colorize_depth, grid, save_png
-from usplat_dr.jobs.arguments import out_folder, positive_int
+from usplat_dr.jobs.arguments import (
+    add_image_shape_option,
+    add_square_size_alias,
+    out_folder,
+    positive_int,
+)
 from usplat_dr.render import RasterSettings, rasterize
 from usplat_dr.render.scenes import covariances_from, orbit_cameras, random_rotations, sh_from_rgb
 
@@ -74,10 +79,11 @@ def demo_gaussians(seed: int = 0) -> dict[str, torch.Tensor]:
     return {"means": means, "covariances": covs, "sh_coefficients": sh, "opacities": opac}
 
 
-def render_demo(out: Path, size: int = 256, views: int = 6, device: str = "cpu",
-                settings: RasterSettings | None = None) -> list[Path]:
-    """Render the demo scene from ``views`` orbiting cameras; write colour, depth and alpha PNGs
-    per view and a contact sheet. Returns the written paths."""
+def render_demo(out: Path, image_shape: tuple[int, int] = (256, 256), views: int = 6,
+                device: str = "cpu", settings: RasterSettings | None = None) -> list[Path]:
+    """Render the demo scene from ``views`` orbiting cameras at ``image_shape`` (H, W); write
+    colour, depth and alpha PNGs per view and a contact sheet. Returns the written paths."""
+    height, width = image_shape
     dev = torch.device(device)
     scene = {k: v.to(dev) for k, v in demo_gaussians().items()}
     c2w = orbit_cameras(views, radius=3.2, height=1.2, arc_degrees=360.0).to(dev)
@@ -85,11 +91,12 @@ def render_demo(out: Path, size: int = 256, views: int = 6, device: str = "cpu",
     bg = torch.tensor([0.93, 0.95, 1.0], device=dev)
     written, colors, depths = [], [], []
     g = scene["means"].shape[0]
-    log.info("rendering %d Gaussians from %d views at %dx%d on %s", g, views, size, size, device)
+    log.info("rendering %d Gaussians from %d views at %dx%d on %s", g, views, width, height,
+             device)
     for v in range(views):
         t0 = time.perf_counter()
         r = rasterize(c2w[v:v + 1], K[None], torch.tensor([0.1], device=dev),
-                      torch.tensor([100.0], device=dev), (size, size), bg[None],
+                      torch.tensor([100.0], device=dev), (height, width), bg[None],
                       scene["means"][None], scene["covariances"][None],
                       scene["sh_coefficients"][None], scene["opacities"][None], settings)
         ms = (time.perf_counter() - t0) * 1e3
@@ -111,14 +118,15 @@ def render_demo(out: Path, size: int = 256, views: int = 6, device: str = "cpu",
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=out_folder, default="outputs/render-demo", help="output folder")
-    p.add_argument("--size", type=positive_int, default=256,
-                   help="image height and width in pixels")
+    add_image_shape_option(p, [256, 256], "the images' height and width in pixels")
+    add_square_size_alias(p)
     p.add_argument("--views", type=positive_int, default=6, help="number of cameras on the orbit")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
                    help="cpu: Dr.Jit LLVM backend; cuda: Dr.Jit CUDA backend")
 
 
 def run(args: argparse.Namespace) -> int:
-    paths = render_demo(Path(args.out), size=args.size, views=args.views, device=args.device)
+    paths = render_demo(Path(args.out), image_shape=tuple(args.image_shape), views=args.views,
+                        device=args.device)
     print(f"wrote {len(paths)} images to {args.out} (overview: {paths[-1]})")
     return 0
