@@ -195,13 +195,16 @@ def chart(summary: dict, path: Path) -> Path:
     x = [float(k[:-1]) for k in keeps]
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, label in (("feed_forward_loss_db", "feed-forward (predicted K)"),
-                        ("bound_loss_db", "bound (K fitted to the view)")):
+                        ("bound_loss_db", "bound (K fitted on other frames)")):
         y = [summary[k][name]["mean"] for k in keeps]
         lo = [summary[k][name]["t95"][0] for k in keeps]
         hi = [summary[k][name]["t95"][1] for k in keeps]
         ax.errorbar(x, y, yerr=[[a - b for a, b in zip(y, lo)], [b - a for a, b in zip(y, hi)]],
                     marker="o", capsize=3, label=label)
     ax.set_xscale("log")
+    ax.set_xticks(x, [f"{v:g}" for v in x])
+    ax.minorticks_off()
+    ax.axhline(0, color="0.7", lw=0.8)
     ax.set_xlabel("Gaussians kept per target (%)")
     ax.set_ylabel("PSNR loss against all Gaussians (dB)")
     ax.set_title("What keeping K costs: the feed-forward budget and the bound")
