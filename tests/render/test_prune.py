@@ -192,5 +192,7 @@ def test_padding_renders_each_entry_as_alone():
 
 
 def test_settings_are_checked():
+    with pytest.raises(ValueError, match="retired.*GaussianBudget.*footprint"):
+        PruneSettings(keep_fraction=0.5)
     with pytest.raises(ValueError, match="merge_pixels"):
         PruneSettings(merge_pixels=-1.0)

@@ -48,8 +48,17 @@ class PruneSettings:
     merge_pixels: float = 1.0  # cell edge in target pixels
     merge_depth: float = 0.02  # relative depth bin width (log-depth bins)
     merge_color: float = 0.1  # DC colour bin width (colour in [0, 1])
+    #: Retired (2026-11-27): a value here is an error naming its replacement, the Gaussian
+    #: budget's footprint ranking.
+    keep_fraction: float | None = None
 
     def __post_init__(self):
+        if self.keep_fraction is not None:
+            raise ValueError(f"PruneSettings.keep_fraction is retired: keep fewer Gaussians with "
+                             f"a budget, forward(..., budget=GaussianBudget("
+                             f"{self.keep_fraction}, rank_by='footprint')) "
+                             f"(usplat_dr.model.budget), --gaussians and --rank-by footprint "
+                             f"on the command line")
         if self.merge_pixels <= 0 or self.merge_depth <= 0 or self.merge_color <= 0:
             raise ValueError("PruneSettings: merge_pixels, merge_depth and merge_color must be "
                              f"> 0, got {self.merge_pixels}, {self.merge_depth}, "
