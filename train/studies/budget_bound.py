@@ -38,6 +38,7 @@ from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.io import atomic_open, write_json
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.types import Gaussians
+from usplat_dr.model.uniquesplat import StudyHooks
 from usplat_dr.training.checkpoints import load
 from usplat_dr.training.per_scene import FitCfg, views_from_record
 
@@ -136,9 +137,12 @@ def scene_rows(model, batch: dict, key: str, frames: dict, keeps, rank_by: str, 
     others = [i for i in range(frames["images"].shape[0]) if i not in frames["targets"]]
     rows = []
     settings = [(1.0, None)] + [(k, GaussianBudget(k, rank_by)) for k in keeps]
+    with torch.no_grad():  # the encoder once per scene, reused by every setting
+        hooks = StudyHooks(encoding=model.encode(inputs.images, inputs.extrinsics,
+                                                 inputs.intrinsics, inputs.near, inputs.far))
     for keep, budget in settings:
         with torch.no_grad():
-            out = model(*inputs, budget=budget)
+            out = model(*inputs, budget=budget, hooks=hooks)
         for n in range(images.shape[0]):
             one = Gaussians(*(getattr(out.gaussians, f)[n:n + 1] for f in GAUSSIAN_FIELDS))
             predicted = psnr(out.color[0, n][None].clamp(0, 1), images[n][None]).item()
@@ -245,6 +249,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     model = load(args.checkpoint).eval()
     index = synthetic_indices(Path(args.data))[args.split]
+    targets = json.loads(Path(index).read_text())  # the evaluation index: frames per scene
     ds = dataset_from_section({"name": "synth", "roots": [args.data],
                                "image_shape": args.image_shape,
                                "evaluation_index": str(index)}, "test")
@@ -263,7 +268,7 @@ def main(argv=None) -> int:
         batch = torch.utils.data.default_collate([example])
         cameras, images = scene_frames(Path(args.data), key, args.image_shape)
         frames = {"cameras": cameras, "images": images,
-                  "targets": set(json.loads(Path(index).read_text())[key]["target"])}
+                  "targets": set(targets[key]["target"])}
         rows += scene_rows(model, batch, key, frames, args.keeps, args.rank_by, args.steps,
                            args.fit_on)
         with atomic_open(table, "w") as f:
