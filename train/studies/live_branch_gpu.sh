@@ -11,10 +11,12 @@
 #   bash train/studies/live_branch_gpu.sh OUT [SECONDS] [STEPS] [DEVICE]
 #
 # SECONDS (default 240): each run's wall-time limit (it stops at STEPS or at the limit; its last
-# checkpoint, written every 100 steps, is what the meter reads). DEVICE: cuda (default), or cpu
-# to try the script at a tiny size. Writes OUT/results.tar.gz (each run's log and metrics.csv,
-# the meter's meter.csv and meter.json) and each run's last weights as OUT/NAME.pt (float16,
-# as the shipped checkpoints are stored; about 7 MB each).
+# checkpoint, written every 50 steps, is what the meter reads; every 250th step's is kept, and
+# the one at step 750 is read on the held-out scenes too, to compare arms at equal steps).
+# DEVICE: cuda (default), or cpu to try the script at a tiny size. Writes OUT/results.tar.gz
+# (each run's log and metrics.csv, the meter's meter.csv and meter.json) and each run's whole
+# last state as OUT/NAME.ckpt (weights and optimiser: `usplat train ... --resume` continues it
+# anywhere, `export_weights` makes a shipped-style .pt of it; about 13 MB each).
 set -uo pipefail
 OUT=${1:?OUT folder}; SECONDS_EACH=${2:-240}; STEPS=${3:-6000}; DEVICE=${4:-cuda}
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
@@ -25,14 +27,18 @@ mkdir -p "$OUT" "$WORK"
 $PY train/studies/carry_sets.py unpack .gpudata || exit 1
 BATCH=${BATCH:-16}
 common=(--config synthetic_tiny_depth.yaml 'dataset.roots=[.gpudata/train]' device=$DEVICE
-        threads=1 seed=0 train.progress=false train.steps=$STEPS train.checkpoint_every=100
-        train.validate_every=500 train.log_every=50 data_loader.batch_size=$BATCH
+        threads=1 seed=0 train.progress=false train.steps=$STEPS train.checkpoint_every=50
+        train.keep_every=250 train.validate_every=500 train.log_every=50 data_loader.batch_size=$BATCH
         dataset.overrides.seed=0)
 branch=(model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3)
 declare -A arms=(
   [branch_gate0]="${branch[*]} model.open_gate_std=0"
   [branch_gate02_h128]="${branch[*]} model.open_gate_std=0.02 model.overrides.specific_hidden=128"
   [branch_primary]="${branch[*]} model.open_gate_std=0.02 model.overrides.view_features=primary"
+  [branch_primary_ieee]="${branch[*]} model.open_gate_std=0.02 model.overrides.view_features=primary
+                         tf32=false"
+  [branch_primary_b32]="${branch[*]} model.open_gate_std=0.02 model.overrides.view_features=primary
+                        data_loader.batch_size=$((BATCH * 2))"
   [joint]="model.variant=full model.init_from=tiny_baseline optimizer.lr=2e-4
            optimizer.warm_up_fraction=0.05 optimizer.hyper_lr_scale=10
            model.overrides.delta_init_std=0.01 model.overrides.delta_rank=16
@@ -62,17 +68,18 @@ done
 $PY train/studies/branch_meter.py --device "$DEVICE" --checkpoints tiny_full "${runs[@]}" \
   --sets train=.gpudata/train/train:30 heldout=.gpudata/heldout:30 --embedding \
   --out "$WORK/meter" 2>&1 | grep -v "jit_find_library\|jitc_llvm_init"
-$PY - "$WORK" "$OUT" <<'EOF'
-import json, sys
-from pathlib import Path
-from usplat_dr.training.checkpoints import export_weights
-work, out = Path(sys.argv[1]), Path(sys.argv[2])
-for ckpt, sets in json.loads((work / "meter" / "meter.json").read_text()).items():
-    if ckpt != "tiny_full":  # every arm's weights come back (the machine's files do not)
-        path = export_weights(Path(ckpt) / "checkpoints" / "last.ckpt",
-                              out / f"{Path(ckpt).name}.pt")
-        print(f"{path}: live on held-out scenes: {sets['heldout']['live']}")
-EOF
+at750=()
+for run in "${runs[@]}"; do
+  [ -f "$run/checkpoints/step_0000750.ckpt" ] && at750+=("$run/checkpoints/step_0000750.ckpt")
+done
+if [ ${#at750[@]} -gt 0 ]; then
+  $PY train/studies/branch_meter.py --device "$DEVICE" --checkpoints "${at750[@]}" \
+    --sets heldout=.gpudata/heldout:30 --out "$WORK/meter_750" 2>&1 \
+    | grep -v "jit_find_library\|jitc_llvm_init"
+fi
+for run in "${runs[@]}"; do  # every arm's whole state comes back (the machine's files do not)
+  cp "$run/checkpoints/last.ckpt" "$OUT/$(basename "$run").ckpt"
+done
 tar -czf "$OUT/results.tar.gz" -C "$WORK" --exclude='*.ckpt' --exclude=roots .
 echo "total: $(( $(date +%s) - start )) s"
 

@@ -206,6 +206,10 @@ class RootCfg:
     # (usplat_dr.training.cores); auto (or null): on for a CPU run whose threads cover all of
     # its cores on a VM whose idle cores a probe at start finds slow to wake
     keep_cores_awake: bool | str | None = "auto"
+    # float32 convolutions and matrix products on a GPU: null keeps torch's defaults (cuDNN
+    # convolutions in TF32, matrix products in IEEE float32); false: IEEE float32 for both
+    # (slower, closer to the CPU's numbers); true: TF32 for both. No effect on the CPU.
+    tf32: bool | None = None
     name: str | None = None  # a label for the run
     model: ModelSection = field(default_factory=ModelSection)
     dataset: DatasetSectionCfg = field(default_factory=DatasetSectionCfg)

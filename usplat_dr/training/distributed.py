@@ -75,6 +75,23 @@ def set_threads(threads: int, device: str = "cpu") -> None:
         dr.set_thread_count(threads)
 
 
+def set_tf32(tf32: bool | None) -> None:
+    """cuDNN convolutions and CUDA matrix products in TF32 (``True``), in IEEE float32
+    (``False``), or as torch leaves them (``None``). Through torch's per-backend
+    ``fp32_precision`` switches where they exist (torch >= 2.9), else the older ``allow_tf32``
+    flags (mixing the two is an error in torch)."""
+    if tf32 is None:
+        return
+    precision = "tf32" if tf32 else "ieee"
+    conv = getattr(torch.backends.cudnn, "conv", None)
+    if conv is not None and hasattr(conv, "fp32_precision"):
+        conv.fp32_precision = precision
+        torch.backends.cuda.matmul.fp32_precision = precision
+    else:
+        torch.backends.cudnn.allow_tf32 = tf32
+        torch.backends.cuda.matmul.allow_tf32 = tf32
+
+
 def rng_state() -> dict:
     """The random number generators' states (torch, NumPy, Python, CUDA), for checkpoints, as
     tensors and plain data (so a checkpoint loads with ``torch.load(weights_only=True)``)."""

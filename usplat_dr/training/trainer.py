@@ -42,6 +42,7 @@ from usplat_dr.training.distributed import (
     gather,
     parameter_digest,
     rng_state,
+    set_tf32,
     setup_distributed,
 )
 from usplat_dr.training.losses import training_loss
@@ -88,6 +89,7 @@ class Trainer:
         c = self.config
         self.out = Path(c.output_dir)
         self.rank, self.world, self.device = setup_distributed(c.device, c.threads)
+        set_tf32(c.tf32)
         seed = c.seed
         # The same seed on every rank: identical initial weights (DDP would broadcast rank 0's
         # anyway); the data is sharded by the dataset and its samplers have their own seeds.
