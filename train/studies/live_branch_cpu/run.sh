@@ -2,8 +2,10 @@
 # The primary-features arm (E_H = the primary network's features, gate 0.02) at batch 16 on
 # one CPU core, resumable across machines (train/studies/README.md, "The primary-features arm
 # at batch 16 on one CPU core"). The run folder is outputs/live/cpu_primary_b16; where it is
-# missing, it starts from the checkpoint kept here (last.ckpt: the run's state at its last stop,
-# optimiser included), so the run goes on where it stopped.
+# missing, it starts from the run's state at its last stop (step 788, optimiser included), kept
+# in the repository's history (commit a6aca56, train/studies/live_branch_cpu/last.ckpt; 13 MB,
+# out of the working tree so that the tree stays small enough to travel to a GPU machine), so
+# the run goes on where it stopped.
 #
 #   nohup bash train/studies/live_branch_cpu/run.sh > outputs/live/cpu_b16.log 2>&1 &
 #   python train/studies/branch_meter.py --checkpoints outputs/live/cpu_primary_b16/checkpoints/step_0001000.ckpt \
@@ -16,7 +18,7 @@ HERE=train/studies/live_branch_cpu
 RUN=outputs/live/cpu_primary_b16
 if [ ! -f "$RUN/checkpoints/last.ckpt" ]; then
   mkdir -p "$RUN/checkpoints"
-  cp "$HERE/last.ckpt" "$RUN/checkpoints/last.ckpt"
+  git show "a6aca56:$HERE/last.ckpt" > "$RUN/checkpoints/last.ckpt"
   cp "$HERE/metrics.csv" "$RUN/metrics.csv"
 fi
 exec "${PYTHON:-.venv/bin/python}" -m usplat_dr train --config synthetic_tiny_depth.yaml \
