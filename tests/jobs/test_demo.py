@@ -74,6 +74,10 @@ def test_demo_quick_end_to_end(wheel_demo):
     for variant in ("baseline", "full"):  # the brief fine-tuning from the shipped (a)
         assert (tmp_path / f"train_{variant}" / "checkpoints" / "last.ckpt").is_file()
     assert "sha256" in text and "drjit" in text  # where the numbers came from
+    # the live (c)'s meter (whether it reads live at 32x32 is not asserted: it was trained at 64)
+    assert "| (c) live (`tiny_full_live`" in text
+    live = json.loads((tmp_path / "eval_shipped_live" / "summary.json").read_text())
+    assert "view_specificity" in live["splits"]["standard"]
     images = [line for line in text.splitlines() if line.startswith("![")]
     assert all((tmp_path / line.split("(")[1].rstrip(")")).is_file() for line in images)
 
@@ -220,3 +224,24 @@ def test_write_report_writes_a_section_each(tmp_path):
     assert "(a) primary network, s1:\n\n![s1](eval_shipped_baseline/renders/standard/s1.png)" \
         in text and "s2.png" not in text  # the first two renders
     assert "No multi-seed verdict is shipped" in text and "Full `usplat bench`" not in text
+
+
+def test_report_shows_the_live_c_meter_and_its_psnr_against_a(tmp_path):
+    """The shipped live (c): its meter row (live: yes) beside the others, and a sentence with its
+    PSNR against the shipped (a)'s and its signed per-target difference."""
+    import dataclasses
+
+    from usplat_dr.jobs.report import meter_lines
+
+    results = demo_results(tmp_path / "demo", {})
+    meter = {"scenes": 3, "spread_rel_w": {"to_disparity.0": 1.2e-2},
+             "d_mean_abs": {"mean_db": 0.09, "low": 0.06, "high": 0.12},
+             "d_mean": {"mean_db": 0.0056, "low": -0.008, "high": 0.019},
+             "d_zero": {"mean_db": -0.03, "low": -0.17, "high": 0.11}, "live": True}
+    live = {"splits": {"standard": {"psnr": 25.69, "ssim": 0.8, "abs_rel": 0.09, "scenes": 3,
+                                    "view_specificity": meter}}}
+    text = "\n".join(meter_lines(dataclasses.replace(results, live=live)))
+    assert ("| (c) live (`tiny_full_live`: E_H reads the primary features) | 3 | 1.2e-02 | "
+            "0.0900 dB [0.0600, 0.1200] | -0.0300 dB [-0.1700, +0.1100] | yes |") in text
+    assert "renders 25.69 dB against the shipped (a)'s 20.00 dB" in text and "+0.0056 dB" in text
+    assert "live (c)" not in "\n".join(meter_lines(results))  # no live summary: no row

@@ -104,3 +104,25 @@ def test_a_bad_base_is_a_clear_error(budget_checkpoint, tmp_path, base, error, m
     torch_save(state, addon)
     with pytest.raises(error, match=match):
         read_usplat_checkpoint(addon)
+
+
+def test_an_addon_with_another_branch_design_leaves_out_the_bases_unused_weights(tmp_path):
+    """A (c) whose view-specific branch reads the primary network's features (no ResNet18)
+    trained on tiny_full: the add-on names the base's ResNet weights as unused, and loads as
+    exactly the whole model (no unexpected keys)."""
+    base = load("tiny_full")
+    model = UniqueSplat(dataclasses.replace(base.cfg, view_features="primary"))
+    shared = {k: v for k, v in base.state_dict().items() if k in model.state_dict()
+              and model.state_dict()[k].shape == v.shape}
+    model.load_state_dict(shared, strict=False)
+    path = tmp_path / "last.ckpt"
+    torch_save({"model": model.state_dict(), "model_config": model.cfg.to_dict(),
+                "config": {"model": {"init_from": "tiny_full"}}, "step": 3}, path)
+    addon = export_weights(path, tmp_path / "live.pt", base="tiny_full")
+    unused = torch.load(addon, map_location="cpu", weights_only=True)["base"]["unused"]
+    assert unused == sorted(set(base.state_dict()) - set(model.state_dict()))
+    assert any(".resnet." in k for k in unused)
+    loaded, _ = load_model(addon)
+    got, expected = loaded.state_dict(), model.state_dict()
+    assert got.keys() == expected.keys()
+    assert all(torch.equal(got[k], expected[k].half().float()) for k in got)

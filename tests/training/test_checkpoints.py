@@ -124,11 +124,15 @@ def test_entry_matches_its_sha256_and_loads(entry):
     assert "optimizer" not in state and state["format"] == "usplat-weights/1"
     model, step = load_model(path)
     assert model.cfg.variant == entry["variant"] and step >= 1
-    # an add-on's model is its base's with the budget stage's importance head
-    assert model.cfg.importance == bool(entry.get("base")) == ("base" in state)
+    # an add-on (its base's model with the budget stage's importance head, or with another
+    # view-specific branch) says so in the manifest and in the file; an importance head ships
+    # only as an add-on
+    assert bool(entry.get("base")) == ("base" in state)
+    assert not model.cfg.importance or "base" in state
     reference = UniqueSplat.from_preset(entry["preset"], variant=entry["variant"],
                                         importance=model.cfg.importance,
-                                        importance_hidden=model.cfg.importance_hidden)
+                                        importance_hidden=model.cfg.importance_hidden,
+                                        view_features=model.cfg.view_features)
     assert sum(p.numel() for p in model.parameters()) == sum(
         p.numel() for p in reference.parameters())
     # a render on two cameras a short baseline apart: finite, in range

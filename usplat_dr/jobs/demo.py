@@ -37,6 +37,7 @@ from usplat_dr.training.checkpoints import (
     BASE,
     BUDGETED,
     CHECKPOINTS,
+    LIVE,
     SHIPPED,
     load_model,
     registered_verdict,
@@ -76,7 +77,7 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     shipped = shipped_checkpoints(checkpoints)
-    missing = sorted({BASE, *SHIPPED.values(), *BUDGETED.values()} - set(shipped))
+    missing = sorted({BASE, *SHIPPED.values(), *BUDGETED.values(), LIVE} - set(shipped))
     if missing:
         raise FileNotFoundError(f"the manifest in {checkpoints} lacks {missing}")
     t_start = time.perf_counter()
@@ -97,6 +98,11 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
                                       label=variant, view_meter=("standard",))
         timings[f"evaluation shipped {variant}"] = time.perf_counter() - t
     verdict = compare({v: [out / f"eval_shipped_{v}" / "per_scene.csv"] for v in SHIPPED})
+    t = time.perf_counter()  # the live (c): its meter, and its standard-split numbers
+    live = evaluate(load_model(shipped[LIVE])[0], dataset, {"standard": indices["standard"]},
+                    out / "eval_shipped_live", label="live (c)", view_meter=("standard",),
+                    images_per_split=0)
+    timings["evaluation shipped live (c)"] = time.perf_counter() - t
     verdict_chart(verdict, out / "verdict.png")
 
     # ---- brief fine-tuning from the shipped (a): training works ----
@@ -136,8 +142,9 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
         out=out, recipe=b, recipe_name=recipe, summaries=summaries, timings=timings,
         worst=worst, bench=bench, stable={v: stability(r) for v, r in runs.items()},
         verdict=verdict, tuned=tuned, provenance=provenance([data]), allocation=allocation,
-        manifest={n: manifest[n] for n in (BASE, *SHIPPED.values(), *BUDGETED.values())},
-        registered=registered_verdict(checkpoints)))
+        manifest={n: manifest[n]
+                  for n in (BASE, *SHIPPED.values(), *BUDGETED.values(), LIVE)},
+        registered=registered_verdict(checkpoints), live=live))
     print(f"report: {report}")
     return report
 

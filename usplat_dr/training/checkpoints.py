@@ -11,6 +11,7 @@ import logging
 import os
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from usplat_dr.config import ConfigError
@@ -86,6 +87,11 @@ def _on_base(path: Path, state: dict, map_location, trust: bool) -> dict:
     if not isinstance(own, dict) or not isinstance(inherited, dict):
         raise ValueError(f"checkpoint {str(path)!r} or its base {found}: 'model' is not a "
                          f"state dict (names -> tensors)")
+    unused = base.get("unused", [])
+    if not (isinstance(unused, list) and all(isinstance(k, str) for k in unused)):
+        raise ValueError(f"checkpoint {str(path)!r}: its base's 'unused' must be a list of "
+                         f"weight names (written by export_weights(..., base=))")
+    inherited = {k: v for k, v in inherited.items() if k not in set(unused)}
     return {**state, "model": {**inherited, **own}}
 
 
@@ -257,8 +263,13 @@ def widened_depth_range(depth_range: list[float] | None, near: torch.Tensor,
         [1.0, 2.0, 9.0, 50.0]
         >>> widened_depth_range([1.0, 2.0, 9.0, 50.0], torch.tensor([0.5]), torch.tensor([20.0]))
         [0.5, 2.0, 9.0, 50.0]
+        >>> widened_depth_range(None, torch.tensor([0.2]), torch.tensor([4.525]))  # float32
+        [0.2, 0.2, 4.525, 4.525]
     """
-    now = torch.stack([near.min(), near.max(), far.min(), far.max()]).double().tolist()
+    values = torch.stack([near.min(), near.max(), far.min(), far.max()])
+    now = values.double().tolist()
+    if values.dtype == torch.float32:  # the shortest decimal naming each float32 value: 0.2,
+        now = [float(str(np.float32(v))) for v in now]  # not 0.20000000298023224
     if depth_range is None:
         return now
     return [min(depth_range[0], now[0]), max(depth_range[1], now[1]),
@@ -414,7 +425,8 @@ def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: 
     ``base`` (a shipped checkpoint's name or a complete usplat checkpoint file): an add-on,
     holding only the weights that differ from ``base``'s (compared as stored: a model
     fine-tuned from a float16 file and frozen there gives back the same float16 values) and
-    naming ``base`` by file name and sha256. It loads like any checkpoint where that base
+    naming ``base`` by file name and sha256 (and the base's weights this model lacks, left out
+    when it loads: a branch with another design). It loads like any checkpoint where that base
     lies beside it or among the shipped ones (``read_usplat_checkpoint``)."""
     state = read_usplat_checkpoint(checkpoint, trust=trust)
     if "model_config" not in state:
@@ -438,6 +450,9 @@ def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: 
             if k not in inherited or inherited[k].shape != v.shape
             or not torch.equal(inherited[k].double(), v.double())}
         shipped["base"] = {"file": base_path.name, "sha256": _file_sha256(base_path)}
+        unused = sorted(set(inherited) - set(weights))
+        if unused:  # the base's weights this model has no place for (another E_H, say)
+            shipped["base"]["unused"] = unused
     return torch_save(shipped, out)
 
 
@@ -460,6 +475,10 @@ SHIPPED = {"baseline": "tiny_baseline_continued", "agnostic": "tiny_agnostic",
 #: inference"): add-ons holding the importance head, the rest their base's bit for bit (so
 #: unbudgeted they render exactly as the SHIPPED ones); ``usplat demo`` charts their budgets.
 BUDGETED = {"baseline": "tiny_baseline_budget", "full": "tiny_full_budget"}
+#: The first (c) whose view-specific branch is live (its Delta W differs between target views:
+#: E_H reading the primary network's features, trained alone at 32 scenes a step on a GPU; an
+#: add-on on tiny_full). SHIPPED's (c) stays the paper's form; the demo shows this one's meter.
+LIVE = "tiny_full_live"
 
 
 def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
