@@ -26,10 +26,11 @@ WORK=${WORK:-/tmp/live_branch_gpu}
 mkdir -p "$OUT" "$WORK"
 $PY train/studies/carry_sets.py unpack .gpudata || exit 1
 BATCH=${BATCH:-16}
+SEED=${SEED:-0}  # the runs' seed (model noise and data order); seeds of one arm: SEED=1 ...
 common=(--config synthetic_tiny_depth.yaml 'dataset.roots=[.gpudata/train]' device=$DEVICE
-        threads=1 seed=0 train.progress=false train.steps=$STEPS train.checkpoint_every=50
+        threads=1 seed=$SEED train.progress=false train.steps=$STEPS train.checkpoint_every=50
         train.keep_every=250 train.validate_every=500 train.log_every=50 data_loader.batch_size=$BATCH
-        dataset.overrides.seed=0)
+        dataset.overrides.seed=$SEED)
 branch=(model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3)
 declare -A arms=(
   [branch_gate0]="${branch[*]} model.open_gate_std=0"
