@@ -10,7 +10,9 @@
 # Data: the GPU run's own 200 JPEG training scenes (.gpudata, packed from outputs/big/train480
 # as below when missing), unpacked into outputs/live/gpudata so that .gpudata stays small
 # enough to travel. The run folder is outputs/live/cpu_b32_seed$SEED; where it is missing, the
-# state kept here (seed$SEED.ckpt, committed at each stop) is restored first.
+# state of the last stop is restored first: committed as seed$SEED.ckpt and then removed from
+# the working tree (13 MB that would not travel to a GPU machine), the commit that holds it
+# named in seed$SEED.commit.
 set -euo pipefail
 SEED=${1:?seed (1-4; seed 0 is tiny_full_live)}
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)
@@ -27,9 +29,9 @@ if [ ! -d "$DATA/train" ]; then
   mkdir -p "$DATA" && cp -r .gpudata/train .gpudata/heldout "$DATA/"
   $PY train/studies/carry_sets.py unpack "$DATA"
 fi
-if [ ! -f "$RUN/checkpoints/last.ckpt" ] && [ -f "$HERE/seed$SEED.ckpt" ]; then
+if [ ! -f "$RUN/checkpoints/last.ckpt" ] && [ -f "$HERE/seed$SEED.commit" ]; then
   mkdir -p "$RUN/checkpoints"
-  cp "$HERE/seed$SEED.ckpt" "$RUN/checkpoints/last.ckpt"
+  git show "$(cat "$HERE/seed$SEED.commit"):$HERE/seed$SEED.ckpt" > "$RUN/checkpoints/last.ckpt"
 fi
 exec $PY -m usplat_dr train --config synthetic_tiny_depth.yaml "dataset.roots=[$DATA/train]" \
   model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3 \
