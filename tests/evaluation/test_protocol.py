@@ -153,3 +153,15 @@ def test_masked_psnr_against_numpy():
     mse = ((p[0] - g[0]) ** 2).mean(0)[sel].mean()
     assert got[0] == pytest.approx(-10 * np.log10(mse), abs=1e-6)
     assert math.isnan(got[1])
+
+
+def test_held_out_scenes_names_the_scored_scenes_in_index_order(protocol_set):
+    from usplat_dr.data.view_sampler import read_evaluation_index
+    from usplat_dr.evaluation import held_out_scenes, load_example
+
+    dataset, index, scenes = held_out_scenes(protocol_set, size=32)
+    entries = read_evaluation_index(index)
+    assert scenes == [k for k, v in entries.items() if v is not None] and scenes
+    assert held_out_scenes(protocol_set, count=1, size=32)[2] == scenes[:1]
+    batch = load_example(dataset, index, scenes[0])
+    assert batch["target"]["image"].shape[-2:] == (32, 32)

@@ -24,7 +24,6 @@ t intervals over scenes) and prints the table.
 
 import argparse
 import csv
-import json
 import statistics
 from pathlib import Path
 
@@ -32,7 +31,7 @@ import torch
 
 import usplat_dr  # noqa: F401  (libLLVM first)
 from usplat_dr.data.types import model_inputs
-from usplat_dr.evaluation import load_example, synthetic_indices
+from usplat_dr.evaluation import held_out_scenes, load_example
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.io import atomic_open, write_json
@@ -160,9 +159,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     model = load(args.checkpoint).eval()
-    index = synthetic_indices(args.data, ["standard"])["standard"]
-    scenes = [k for k, v in json.loads(Path(index).read_text()).items() if v][:args.scenes]
-    dataset = {"name": "synth", "roots": [args.data], "image_shape": [args.size, args.size]}
+    dataset, index, scenes = held_out_scenes(args.data, count=args.scenes, size=args.size)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []

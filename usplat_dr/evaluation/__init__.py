@@ -5,9 +5,11 @@ from (``provenance``)."""
 from usplat_dr.evaluation.protocol import (
     depth_metrics,
     evaluate,
+    held_out_scenes,
     load_example,
     nan_mean,
     synthetic_indices,
 )
 
-__all__ = ["depth_metrics", "evaluate", "load_example", "nan_mean", "synthetic_indices"]
+__all__ = ["depth_metrics", "evaluate", "held_out_scenes", "load_example", "nan_mean",
+           "synthetic_indices"]

@@ -294,6 +294,18 @@ def synthetic_indices(root: str | Path, splits=None) -> dict[str, str]:
             if any(v is not None for v in read_evaluation_index(p).values())}
 
 
+def held_out_scenes(root: str | Path, split: str = "standard", count: int | None = None,
+                    size: int = 64) -> tuple[dict, str, list[str]]:
+    """A synthetic held-out set's split for a study: the dataset section (images at
+    ``size`` x ``size``), the split's index and the first ``count`` scenes it scores (all of
+    them for ``None``), in the index's order; ``load_example(dataset, index, scene)`` reads one.
+    """
+    index = synthetic_indices(root, [split])[split]
+    scenes = [k for k, v in read_evaluation_index(index).items() if v is not None]
+    dataset = {"name": "synth", "roots": [str(root)], "image_shape": [size, size]}
+    return dataset, index, scenes[:count]
+
+
 def load_example(dataset: dict, index: str, scene: str | None = None) -> dict:
     """One evaluation example as a batch of 1: ``scene`` (default: the index's first)."""
     ds = dataset_from_section({**dataset, "evaluation_index": index}, "test")
