@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# The primary network (a) at 128x128, fine-tuned from the shipped 64x64 tiny_baseline on the
+# same 480 scenes rendered at 128x128, one thread, resumable (train/studies/README.md, "Four
+# times the pixels: models at 128x128"). About 4x a 64x64 step (0.6-0.7 s on one thread).
+#
+#   nohup bash train/studies/res128/run.sh > outputs/res128_a.log 2>&1 &
+#
+# The data (made once, about an hour of one core):
+#   usplat synth --out outputs/big128/train480 --stage train --scenes 480 --frames 24 \
+#       --image-shape 128 128 --seed 100 --jobs 1
+# The pre-registered stopping rule is read from the run's metrics.csv
+# (python train/studies/res128/stop_rule.py outputs/res128_a/metrics.csv): stop the run
+# (SIGTERM; it saves) at the first multiple of 1,000 steps it names.
+set -euo pipefail
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)
+cd "$ROOT"
+exec "${PYTHON:-.venv/bin/python}" -m usplat_dr train --config synthetic_tiny_depth.yaml \
+  'dataset.roots=[outputs/big128/train480]' 'dataset.image_shape=[128,128]' \
+  model.init_from=tiny_baseline model.variant=baseline threads=1 train.steps=15000 \
+  optimizer.lr=2e-4 train.checkpoint_every=250 train.keep_every=1000 train.validate_every=1000 \
+  train.progress=false output_dir=outputs/res128_a --resume
