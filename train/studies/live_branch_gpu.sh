@@ -13,7 +13,8 @@
 # SECONDS (default 240): each run's wall-time limit (it stops at STEPS or at the limit; its last
 # checkpoint, written every 50 steps, is what the meter reads; every 250th step's is kept, and
 # the one at step 750 is read on the held-out scenes too, to compare arms at equal steps).
-# DEVICE: cuda (default), or cpu to try the script at a tiny size. Writes OUT/results.tar.gz
+# DEVICE: cuda (default), or cpu to try the script at a tiny size (tests/train/
+# test_live_branch_gpu.py: BATCH=2, GPUDATA=another packed folder). Writes OUT/results.tar.gz
 # (each run's log and metrics.csv, the meter's meter.csv and meter.json) and each run's whole
 # last state as OUT/NAME.ckpt (weights and optimiser: `usplat train ... --resume` continues it
 # anywhere, `export_weights` makes a shipped-style .pt of it; about 13 MB each).
@@ -24,10 +25,11 @@ cd "$ROOT"
 PY=${PYTHON:-python3}
 WORK=${WORK:-/tmp/live_branch_gpu}
 mkdir -p "$OUT" "$WORK"
-$PY train/studies/carry_sets.py unpack .gpudata || exit 1
+DATA=${GPUDATA:-.gpudata}  # the packed sets (another folder: a test on the CPU)
+$PY train/studies/carry_sets.py unpack "$DATA" || exit 1
 BATCH=${BATCH:-16}
 SEED=${SEED:-0}  # the runs' seed (model noise and data order); seeds of one arm: SEED=1 ...
-common=(--config synthetic_tiny_depth.yaml 'dataset.roots=[.gpudata/train]' device=$DEVICE
+common=(--config synthetic_tiny_depth.yaml "dataset.roots=[$DATA/train]" device=$DEVICE
         threads=1 seed=$SEED train.progress=false train.steps=$STEPS train.checkpoint_every=50
         train.keep_every=250 train.validate_every=500 train.log_every=50 data_loader.batch_size=$BATCH
         dataset.overrides.seed=$SEED)
@@ -67,7 +69,7 @@ for name in "${!arms[@]}"; do
   [ -f "$WORK/$name/checkpoints/last.ckpt" ] && runs+=("$WORK/$name")
 done
 $PY train/studies/branch_meter.py --device "$DEVICE" --checkpoints tiny_full "${runs[@]}" \
-  --sets train=.gpudata/train/train:30 heldout=.gpudata/heldout:30 --embedding \
+  --sets train="$DATA/train/train:30" heldout="$DATA/heldout:30" --embedding \
   --out "$WORK/meter" 2>&1 | grep -v "jit_find_library\|jitc_llvm_init"
 at750=()
 for run in "${runs[@]}"; do
@@ -75,7 +77,7 @@ for run in "${runs[@]}"; do
 done
 if [ ${#at750[@]} -gt 0 ]; then
   $PY train/studies/branch_meter.py --device "$DEVICE" --checkpoints "${at750[@]}" \
-    --sets heldout=.gpudata/heldout:30 --out "$WORK/meter_750" 2>&1 \
+    --sets heldout="$DATA/heldout:30" --out "$WORK/meter_750" 2>&1 \
     | grep -v "jit_find_library\|jitc_llvm_init"
 fi
 for run in "${runs[@]}"; do  # every arm's whole state comes back (the machine's files do not)
