@@ -30,7 +30,8 @@ def test_the_gpu_job_runs_on_the_cpu_at_a_tiny_size(tmp_path, trainer_set):
     env = {**os.environ, "PYTHON": sys.executable, "BATCH": "2", "SEED": "1",
            "ARMS": "branch_primary_b32", "GPUDATA": str(packed), "WORK": str(work)}
     proc = subprocess.run(["bash", str(SCRIPT), str(out), "300", "2", "cpu"], env=env,
-                          capture_output=True, text=True, timeout=1200, cwd=tmp_path)
+                          capture_output=True, text=True, timeout=1200, cwd=tmp_path,
+                          check=False)
     log = proc.stdout[-3000:] + proc.stderr[-3000:]
     assert proc.returncode == 0, log
     state = torch.load(out / "branch_primary_b32.ckpt", map_location="cpu", weights_only=True)
