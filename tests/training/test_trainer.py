@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -164,9 +165,13 @@ def test_the_depth_range_trained_on_is_recorded_resumed_and_shipped(trainer_set,
     first = Trainer(config(trainer_set, tmp_path / "run", 2, *opts))
     first.fit()
     recorded = first.depth_range
-    # what the batches drew lies within the set's scenes, as float32 values of them
-    assert min(near) <= recorded[0] <= recorded[1] <= max(near), (recorded, near)
-    assert min(far) <= recorded[2] <= recorded[3] <= max(far), (recorded, far)
+    # what the batches drew lies within the set's scenes, as float32 values of them (recorded
+    # as the shortest decimals naming those float32 values: compared as float32)
+    f32 = [float(np.float32(v)) for v in recorded]
+    assert float(np.float32(min(near))) <= f32[0] <= f32[1] <= float(np.float32(max(near))), (
+        recorded, near)
+    assert float(np.float32(min(far))) <= f32[2] <= f32[3] <= float(np.float32(max(far))), (
+        recorded, far)
     checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert torch.load(checkpoint, weights_only=True)["depth_range"] == recorded
     resumed = Trainer(config(trainer_set, tmp_path / "run", 2, *opts))
