@@ -11,9 +11,17 @@
 # The pre-registered stopping rule is read from the run's metrics.csv
 # (python train/studies/res128/stop_rule.py outputs/res128_a/metrics.csv): stop the run
 # (SIGTERM; it saves) at the first multiple of 1,000 steps it names.
+# Where outputs/res128_a is missing, the state of the last stop is restored first: committed as
+# train/studies/res128/last.ckpt and then removed from the working tree (it would not travel to
+# a GPU machine), the commit that holds it named in train/studies/res128/state.commit.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)
 cd "$ROOT"
+HERE=train/studies/res128
+if [ ! -f outputs/res128_a/checkpoints/last.ckpt ] && [ -f "$HERE/state.commit" ]; then
+  mkdir -p outputs/res128_a/checkpoints
+  git show "$(cat "$HERE/state.commit"):$HERE/last.ckpt" > outputs/res128_a/checkpoints/last.ckpt
+fi
 exec "${PYTHON:-.venv/bin/python}" -m usplat_dr train --config synthetic_tiny_depth.yaml \
   'dataset.roots=[outputs/big128/train480]' 'dataset.image_shape=[128,128]' \
   model.init_from=tiny_baseline model.variant=baseline threads=1 train.steps=15000 \
