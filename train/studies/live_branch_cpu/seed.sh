@@ -12,7 +12,7 @@
 # enough to travel. The run folder is outputs/live/cpu_b32_seed$SEED; where it is missing, the
 # state of the last stop is restored first: committed as seed$SEED.ckpt and then removed from
 # the working tree (13 MB that would not travel to a GPU machine), the commit that holds it
-# named in seed$SEED.commit.
+# named in seed$SEED.commit (its metrics.csv kept as seed${SEED}_metrics.csv).
 set -euo pipefail
 SEED=${1:?seed (1-4; seed 0 is tiny_full_live)}
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)
@@ -32,6 +32,7 @@ fi
 if [ ! -f "$RUN/checkpoints/last.ckpt" ] && [ -f "$HERE/seed$SEED.commit" ]; then
   mkdir -p "$RUN/checkpoints"
   git show "$(cat "$HERE/seed$SEED.commit"):$HERE/seed$SEED.ckpt" > "$RUN/checkpoints/last.ckpt"
+  cp "$HERE/seed${SEED}_metrics.csv" "$RUN/metrics.csv"
 fi
 exec $PY -m usplat_dr train --config synthetic_tiny_depth.yaml "dataset.roots=[$DATA/train]" \
   model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3 \

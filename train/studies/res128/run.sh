@@ -13,7 +13,8 @@
 # (SIGTERM; it saves) at the first multiple of 1,000 steps it names.
 # Where outputs/res128_a is missing, the state of the last stop is restored first: committed as
 # train/studies/res128/last.ckpt and then removed from the working tree (it would not travel to
-# a GPU machine), the commit that holds it named in train/studies/res128/state.commit.
+# a GPU machine), the commit that holds it named in train/studies/res128/state.commit; its
+# metrics.csv is kept beside them.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)
 cd "$ROOT"
@@ -21,6 +22,7 @@ HERE=train/studies/res128
 if [ ! -f outputs/res128_a/checkpoints/last.ckpt ] && [ -f "$HERE/state.commit" ]; then
   mkdir -p outputs/res128_a/checkpoints
   git show "$(cat "$HERE/state.commit"):$HERE/last.ckpt" > outputs/res128_a/checkpoints/last.ckpt
+  cp "$HERE/metrics.csv" outputs/res128_a/metrics.csv  # the stopping rule reads every row
 fi
 exec "${PYTHON:-.venv/bin/python}" -m usplat_dr train --config synthetic_tiny_depth.yaml \
   'dataset.roots=[outputs/big128/train480]' 'dataset.image_shape=[128,128]' \
