@@ -47,6 +47,7 @@ from usplat_dr.model.budget import (
     top_k,
 )
 from usplat_dr.model.types import Gaussians
+from usplat_dr.render.prune import moment_match
 from usplat_dr.training.checkpoints import load
 
 KEEPS = (0.5, 0.3, 0.1)
@@ -90,35 +91,31 @@ def match_views(means, covariances, extrinsics, intrinsics, h: int, w: int, chi2
 
 
 def merge_pairs(g: Gaussians, partner, same) -> tuple[Gaussians, torch.Tensor]:
-    """The Gaussians with each merging pair moment-matched into its view-0 slot and the view-1
-    slot emptied (opacity 0), and the mask of the emptied slots [S, G]."""
+    """The Gaussians with each merging pair moment-matched into its view-0 slot (the merge rule
+    of pruning, ``render.prune.moment_match``) and the view-1 slot emptied (opacity 0, its other
+    values kept), and the mask of the emptied slots [S, G]."""
+    s, g_total = g.opacities.shape
     hw = partner.shape[1]
-    j = hw + partner
-
-    def pick(x):
-        return torch.gather(x, 1, j.view(*j.shape, *(1,) * (x.dim() - 2)).expand(
-            -1, -1, *x.shape[2:]))
-
-    o0, o1 = g.opacities[:, :hw], pick(g.opacities)
-    total = (o0 + o1).clamp(min=1e-12)
-    w0, w1 = o0 / total, o1 / total
-    m0, m1 = g.means[:, :hw], pick(g.means)
-    mean = w0[..., None] * m0 + w1[..., None] * m1
-    d0, d1 = m0 - mean, m1 - mean
-    cov = (w0[..., None, None] * (g.covariances[:, :hw] + d0[..., :, None] * d0[..., None, :])
-           + w1[..., None, None] * (pick(g.covariances) + d1[..., :, None] * d1[..., None, :]))
-    sh = w0[..., None, None] * g.harmonics[:, :hw] + w1[..., None, None] * pick(g.harmonics)
-    merged = {"means": mean, "covariances": cov, "harmonics": sh,
-              "opacities": 1 - (1 - o0) * (1 - o1)}
+    slots = torch.arange(g_total, device=partner.device).expand(s, g_total)
+    own = torch.arange(hw, device=partner.device).expand(s, hw)
+    emptied = torch.zeros_like(g.opacities, dtype=torch.bool).scatter_(1, hw + partner, same)
+    group = slots.clone()  # one group per slot; a merged partner joins its view-0 Gaussian's
+    rows = torch.arange(s, device=partner.device)[:, None].expand(s, hw)
+    group[rows[same], hw + partner[same]] = own[same]
+    flat = (group + g_total * torch.arange(s, device=group.device)[:, None]).reshape(-1)
+    merged = moment_match(flat, s * g_total, g.means.reshape(-1, 3),
+                          g.covariances.reshape(-1, 3, 3),
+                          g.harmonics.reshape(-1, *g.harmonics.shape[2:]),
+                          g.opacities.reshape(-1))
+    survivor = torch.zeros_like(emptied)
+    survivor[:, :hw] = same  # only merged slots change; every other Gaussian stays bit for bit
     out = {}
     for name in GAUSSIAN_FIELDS:
-        x = getattr(g, name).clone()
+        x = getattr(g, name)
         if name in merged:
-            mask = same.view(*same.shape, *(1,) * (x.dim() - 2))
-            x[:, :hw] = torch.where(mask, merged[name], x[:, :hw])
+            mask = survivor.view(*survivor.shape, *(1,) * (x.dim() - 2))
+            x = torch.where(mask, merged[name].view_as(x), x)
         out[name] = x
-    emptied = torch.zeros_like(g.opacities, dtype=torch.bool)
-    emptied.scatter_(1, j, same)
     out["opacities"] = torch.where(emptied, torch.zeros_like(out["opacities"]),
                                    out["opacities"])
     return Gaussians(**out), emptied

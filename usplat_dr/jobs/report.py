@@ -187,7 +187,7 @@ def meter_lines(r: DemoResults) -> list[str]:
                        "scene: a verdict on such a (c) tests the fine-tuning protocol, not "
                        "weights that depend on the view (docs/verdict.md).")]
     base, live = r.summaries.get("base"), r.live
-    if base and live:
+    if base and live and "view_specificity" in live["splits"]["standard"]:
         b, c = base["splits"]["standard"], live["splits"]["standard"]
         lines += ["", (f"On these scenes the live (c) renders {c['psnr']:.2f} dB against the "
                        f"shipped (a)'s {b['psnr']:.2f} dB; its per-target Delta W against the "

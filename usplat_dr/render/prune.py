@@ -204,6 +204,31 @@ def footprint_scores(extrinsics: Float[Tensor, "b 4 4"], intrinsics: Float[Tenso
                        torch.full_like(area, -1.0))
 
 
+def moment_match(group: Tensor, n: int, means: Tensor, covariances: Tensor, harmonics: Tensor,
+                 opacities: Tensor) -> dict[str, Tensor]:
+    """The Gaussians of each of ``n`` groups (``group`` [M]: each Gaussian's group) merged into
+    one, [n, ...]: the opacity-weighted mean and covariance (the members' covariances plus the
+    spread of their means), the opacity-weighted SH, and the opacity of the members stacked,
+    ``1 - prod(1 - o)``. A group without members gets zeros."""
+
+    def gsum(x: Tensor) -> Tensor:
+        out = torch.zeros((n, *x.shape[1:]), dtype=x.dtype, device=x.device)
+        return out.index_add_(0, group, x)
+
+    o = opacities
+    wsum = gsum(o).clamp(min=1e-12)  # every kept Gaussian has o >= 1/255 when culling
+
+    def wmean(x: Tensor) -> Tensor:
+        shape = (-1,) + (1,) * (x.dim() - 1)
+        return gsum(o.view(shape) * x) / wsum.view(shape)
+
+    mean = wmean(means)
+    d = means - mean[group]
+    return {"means": mean, "covariances": wmean(covariances + d[:, :, None] * d[:, None, :]),
+            "harmonics": wmean(harmonics),
+            "opacities": 1 - torch.exp(gsum(torch.log1p(-o.clamp(max=1 - 1e-6))))}
+
+
 def _merge(sel: dict, batch_idx: Tensor, fp: dict, s: PruneSettings) -> tuple[dict, Tensor]:
     colour = (SH_C0 * sel["sh"][..., 0] + 0.5).clamp(0, 1)
     # one int64 key per Gaussian (a 1D unique is a fast sort): batch 10 bits, cell x and y 12
@@ -221,27 +246,12 @@ def _merge(sel: dict, batch_idx: Tensor, fp: dict, s: PruneSettings) -> tuple[di
         key = (key << bits) | value.clamp(0, (1 << bits) - 1)
     _, group = torch.unique(key, return_inverse=True)
     n = int(group.max()) + 1
-
-    def gsum(x: Tensor) -> Tensor:
-        out = torch.zeros((n, *x.shape[1:]), dtype=x.dtype, device=x.device)
-        return out.index_add_(0, group, x)
-
-    o = sel["opacity"]
-    wsum = gsum(o).clamp(min=1e-12)  # every kept Gaussian has o >= 1/255 when culling
-
-    def wmean(x: Tensor) -> Tensor:
-        shape = (-1,) + (1,) * (x.dim() - 1)
-        return gsum(o.view(shape) * x) / wsum.view(shape)
-
-    mean = wmean(sel["means"])
-    d = sel["means"] - mean[group]
-    cov = wmean(sel["cov"] + d[:, :, None] * d[:, None, :])
-    sh = wmean(sel["sh"])
-    opacity = 1 - torch.exp(gsum(torch.log1p(-o.clamp(max=1 - 1e-6))))
+    merged = moment_match(group, n, sel["means"], sel["cov"], sel["sh"], sel["opacity"])
     # the batch index is part of the key: one value per group
     out_batch = torch.zeros(n, dtype=batch_idx.dtype, device=group.device).scatter_(
         0, group, batch_idx)
-    return dict(means=mean, cov=cov, sh=sh, opacity=opacity), out_batch
+    return dict(means=merged["means"], cov=merged["covariances"], sh=merged["harmonics"],
+                opacity=merged["opacities"]), out_batch
 
 
 def _pad(sel: dict, batch_idx: Tensor, bsz: int, extrinsics: Tensor) -> Pruned:

@@ -91,7 +91,8 @@ def _on_base(path: Path, state: dict, map_location, trust: bool) -> dict:
     if not (isinstance(unused, list) and all(isinstance(k, str) for k in unused)):
         raise ValueError(f"checkpoint {str(path)!r}: its base's 'unused' must be a list of "
                          f"weight names (written by export_weights(..., base=))")
-    inherited = {k: v for k, v in inherited.items() if k not in set(unused)}
+    unused = set(unused)
+    inherited = {k: v for k, v in inherited.items() if k not in unused}
     return {**state, "model": {**inherited, **own}}
 
 
