@@ -27,22 +27,28 @@ def test_the_gpu_job_runs_on_the_cpu_at_a_tiny_size(tmp_path, trainer_set):
     carry.main(["pack", "--out", str(packed), f"train={trainer_set / 'train'}",
                 f"heldout={trainer_set}::png"])
     out, work = tmp_path / "out", tmp_path / "work"
-    env = {**os.environ, "PYTHON": sys.executable, "BATCH": "2", "SEED": "1",
-           "ARMS": "branch_primary_b32", "GPUDATA": str(packed), "WORK": str(work)}
+    env = {**os.environ, "PYTHON": sys.executable, "BATCH": "2", "SEEDS": "1 2",
+           "ARMS": "branch_primary_b32", "GPUDATA": str(packed), "WORK": str(work),
+           "KEEP_EVERY": "1", "KEEP_BACK": "1"}
     proc = subprocess.run(["bash", str(SCRIPT), str(out), "300", "2", "cpu"], env=env,
                           capture_output=True, text=True, timeout=1200, cwd=tmp_path,
                           check=False)
     log = proc.stdout[-3000:] + proc.stderr[-3000:]
     assert proc.returncode == 0, log
-    state = torch.load(out / "branch_primary_b32.ckpt", map_location="cpu", weights_only=True)
-    assert state["step"] == 2, log
-    config = state["config"]
-    assert config["seed"] == 1 and config["data_loader"]["batch_size"] == 4  # 2 x BATCH
-    assert config["model"]["overrides"]["view_features"] == "primary"
+    for seed in (1, 2):  # both seeds ran side by side, each with its own seed
+        run = f"branch_primary_b32_s{seed}"
+        state = torch.load(out / f"{run}.ckpt", map_location="cpu", weights_only=True)
+        assert state["step"] == 2, log
+        config = state["config"]
+        assert config["seed"] == seed and config["dataset"]["overrides"]["seed"] == seed
+        assert config["data_loader"]["batch_size"] == 4  # 2 x BATCH
+        assert config["model"]["overrides"]["view_features"] == "primary"
+        kept = torch.load(out / f"{run}_step1.ckpt", map_location="cpu", weights_only=True)
+        assert kept["step"] == 1  # KEEP_BACK's step, not the last
     meter = json.loads((work / "meter" / "meter.json").read_text())
-    assert set(meter) == {"tiny_full", str(work / "branch_primary_b32")}
+    assert set(meter) == {"tiny_full"} | {str(work / f"branch_primary_b32_s{s}") for s in (1, 2)}
     assert {"train", "heldout"} <= set(meter["tiny_full"])
     with tarfile.open(out / "results.tar.gz") as tar:
         names = tar.getnames()
-    assert "./branch_primary_b32/metrics.csv" in names and "./meter/meter.json" in names
+    assert "./branch_primary_b32_s1/metrics.csv" in names and "./meter/meter.json" in names
     assert not any(n.endswith(".ckpt") for n in names)  # the states come back beside it
