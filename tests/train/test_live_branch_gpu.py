@@ -29,7 +29,7 @@ def test_the_gpu_job_runs_on_the_cpu_at_a_tiny_size(tmp_path, trainer_set):
     out, work = tmp_path / "out", tmp_path / "work"
     env = {**os.environ, "PYTHON": sys.executable, "BATCH": "2", "SEEDS": "1 2",
            "ARMS": "branch_primary_b32", "GPUDATA": str(packed), "WORK": str(work),
-           "KEEP_EVERY": "1", "KEEP_BACK": "1"}
+           "KEEP_EVERY": "1", "CHECKPOINT_EVERY": "1", "KEEP_BACK": "1"}
     proc = subprocess.run(["bash", str(SCRIPT), str(out), "300", "2", "cpu"], env=env,
                           capture_output=True, text=True, timeout=1200, cwd=tmp_path,
                           check=False)

@@ -20,9 +20,10 @@
 # anywhere, `export_weights` makes a shipped-style .pt of it; about 13 MB each).
 # Environment: ARMS (the arms to run), SEED or SEEDS ("1 2": each arm once per seed, side by
 # side, runs named ARM_sN), KEEP_BACK ("2000": those steps' kept checkpoints come back as
-# OUT/RUN_step2000.ckpt), KEEP_EVERY (default 250), WORK (the runs' folder: a later call with
-# the same WORK on the same machine resumes them; RESUME_ONLY=1: stop unless every run has a
-# state there), METER (0: no meter at the end), BATCH, GPUDATA, PYTHON.
+# OUT/RUN_step2000.ckpt), KEEP_EVERY (default 250), CHECKPOINT_EVERY (default 50), WORK (the
+# runs' folder: a later call with the same WORK on the same machine resumes them;
+# RESUME_ONLY=1: stop unless every run has a state there), METER (0: no meter at the end),
+# BATCH, GPUDATA, PYTHON.
 set -uo pipefail
 OUT=${1:?OUT folder}; SECONDS_EACH=${2:-240}; STEPS=${3:-6000}; DEVICE=${4:-cuda}
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
@@ -39,7 +40,7 @@ SEEDS=${SEEDS:-$SEED}
 # KEEP_BACK: steps whose kept checkpoints come back too, as OUT/RUN_stepN.ckpt ("2000")
 KEEP_BACK=${KEEP_BACK:-}
 common=(--config synthetic_tiny_depth.yaml "dataset.roots=[$DATA/train]" device=$DEVICE
-        threads=1 train.progress=false train.steps=$STEPS train.checkpoint_every=50
+        threads=1 train.progress=false train.steps=$STEPS train.checkpoint_every=${CHECKPOINT_EVERY:-50}
         train.keep_every=${KEEP_EVERY:-250} train.validate_every=500 train.log_every=50 data_loader.batch_size=$BATCH)
 branch=(model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3)
 declare -A arms=(
