@@ -1,0 +1,144 @@
+"""The 128x128 (a) against the 64x64 one, by the test registered for it (train/studies/README.md,
+"Four times the pixels"): on a held-out set rendered at 128x128, per scene of the standard
+split, PSNR and SSIM of the 128x128 model's renders at 128x128 against those of the 64x64
+model (its inputs resized to 64x64 by the data loader, as any evaluation at 64x64) upsampled 2x
+by bicubic interpolation; AbsRel of each at its own size; and both models at 64x64 (what
+resizing costs). Paired differences with 95% t intervals over scenes.
+
+    python train/studies/res128_eval.py --model128 step_0002000.ckpt \\
+        --model64 tiny_baseline --data outputs/big128/test5000 --out outputs/res128_eval
+
+Writes ``OUT/per_scene.csv``, ``OUT/summary.json`` and ``OUT/comparison.png`` (ground truth,
+the 128x128 model, the 64x64 model upsampled, for the first scenes).
+"""
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+import usplat_dr  # noqa: F401  (libLLVM first)
+from usplat_dr.data.types import model_inputs
+from usplat_dr.evaluation import depth_metrics, held_out_scenes, load_example, nan_mean
+from usplat_dr.evaluation.metrics import psnr, ssim
+from usplat_dr.evaluation.verdict import t_interval
+from usplat_dr.io import atomic_open, write_json
+from usplat_dr.training.checkpoints import load
+
+#: The registered success test: PSNR at least this much above the upsampled 64x64 renders
+#: (and SSIM above theirs).
+MARGIN_DB = 1.0
+
+
+def upsample(images: torch.Tensor, factor: int) -> torch.Tensor:
+    """[..., 3, H, W] in [0, 1] -> bicubic ``factor`` x upsampling, clamped to [0, 1] (bicubic
+    overshoots at edges)."""
+    shape = images.shape
+    flat = images.reshape(-1, *shape[-3:])
+    up = F.interpolate(flat, scale_factor=factor, mode="bicubic", align_corners=False)
+    return up.clamp(0, 1).reshape(*shape[:-2], *up.shape[-2:])
+
+
+def render(model, batch) -> tuple[torch.Tensor, float]:
+    """One scene's target renders [T, 3, H, W] and mean AbsRel over its targets."""
+    with torch.no_grad():
+        result = model(*model_inputs(batch, "cpu"))
+    gt_depth = batch["target"].get("depth")
+    rel = float("nan")
+    if gt_depth is not None:
+        rel = nan_mean([depth_metrics(result.depth[0, j], result.alpha[0, j],
+                                      gt_depth[0, j])["abs_rel"]
+                        for j in range(result.color.shape[1])])
+    return result.color[0].clamp(0, 1), rel
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model128", required=True, help="the 128x128 model (checkpoint or name)")
+    p.add_argument("--model64", default="tiny_baseline", help="the 64x64 model")
+    p.add_argument("--data", required=True, help="a usplat synth test root at 128x128")
+    p.add_argument("--scenes", type=int, default=None, help="the first N scenes (default all)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--images", type=int, default=4, help="scenes shown in comparison.png")
+    p.add_argument("--out", required=True, type=Path, help="folder for the results")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    big, small = load(args.model128).eval(), load(args.model64).eval()
+    set128, index, scenes = held_out_scenes(args.data, "standard", args.scenes, size=128)
+    set64 = {**set128, "image_shape": [64, 64]}
+    rows, shown = [], []
+    for k, scene in enumerate(scenes):
+        b128, b64 = load_example(set128, index, scene), load_example(set64, index, scene)
+        gt128, gt64 = b128["target"]["image"][0], b64["target"]["image"][0]
+        pred128, rel128 = render(big, b128)
+        pred64, rel64 = render(small, b64)
+        up = upsample(pred64, 2)
+        big_at64, rel_big64 = render(big, b64)
+        rows.append({
+            "scene": scene,
+            "psnr_128": psnr(pred128, gt128).mean().item(),
+            "psnr_64_up": psnr(up, gt128).mean().item(),
+            "ssim_128": ssim(pred128, gt128).mean().item(),
+            "ssim_64_up": ssim(up, gt128).mean().item(),
+            "abs_rel_128": rel128, "abs_rel_64": rel64,
+            "psnr_128_at64": psnr(big_at64, gt64).mean().item(),
+            "psnr_64_at64": psnr(pred64, gt64).mean().item(),
+            "ssim_128_at64": ssim(big_at64, gt64).mean().item(),
+            "ssim_64_at64": ssim(pred64, gt64).mean().item(),
+            "abs_rel_128_at64": rel_big64})
+        if k < args.images:
+            shown.append(torch.cat([gt128[0], pred128[0], up[0]], dim=-1))
+        print(f"{k + 1}/{len(scenes)} {scene}: 128 {rows[-1]['psnr_128']:.2f} dB, "
+              f"64 upsampled {rows[-1]['psnr_64_up']:.2f} dB", flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    with atomic_open(args.out / "per_scene.csv", "w") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    col = {key: np.array([r[key] for r in rows]) for key in rows[0] if key != "scene"}
+
+    def paired(a: str, b: str) -> dict:
+        d = col[a] - col[b]
+        low, high = t_interval(d)
+        return {"mean": float(np.nanmean(d)), "low": low, "high": high}
+
+    summary = {
+        "scenes": len(rows), "data": str(args.data), "model128": args.model128,
+        "model64": args.model64,
+        "means": {key: float(np.nanmean(v)) for key, v in col.items()},
+        "at128": {"psnr": paired("psnr_128", "psnr_64_up"),
+                  "ssim": paired("ssim_128", "ssim_64_up"),
+                  "abs_rel": paired("abs_rel_128", "abs_rel_64")},
+        "at64": {"psnr": paired("psnr_128_at64", "psnr_64_at64"),
+                 "ssim": paired("ssim_128_at64", "ssim_64_at64"),
+                 "abs_rel": paired("abs_rel_128_at64", "abs_rel_64")}}
+    gain = summary["at128"]
+    summary["success"] = bool(gain["psnr"]["mean"] >= MARGIN_DB and gain["ssim"]["mean"] > 0)
+    write_json(args.out / "summary.json", summary)
+    if shown:
+        from PIL import Image
+        grid = torch.cat(shown, dim=-2).permute(1, 2, 0).mul(255).round().byte().numpy()
+        Image.fromarray(grid).save(args.out / "comparison.png")  # rows: GT | 128 | 64 up
+    m = summary["means"]
+    print(f"at 128x128 over {len(rows)} scenes: 128 model {m['psnr_128']:.3f} dB / SSIM "
+          f"{m['ssim_128']:.4f} / AbsRel {m['abs_rel_128']:.4f}; 64 model upsampled "
+          f"{m['psnr_64_up']:.3f} dB / {m['ssim_64_up']:.4f} (its AbsRel at 64: "
+          f"{m['abs_rel_64']:.4f})")
+    for where in ("at128", "at64"):
+        s = summary[where]
+        print(f"{where}: PSNR {s['psnr']['mean']:+.3f} [{s['psnr']['low']:+.3f}, "
+              f"{s['psnr']['high']:+.3f}] dB, SSIM {s['ssim']['mean']:+.4f} "
+              f"[{s['ssim']['low']:+.4f}, {s['ssim']['high']:+.4f}], AbsRel "
+              f"{s['abs_rel']['mean']:+.4f} [{s['abs_rel']['low']:+.4f}, "
+              f"{s['abs_rel']['high']:+.4f}]")
+    print(f"success (>= +{MARGIN_DB} dB and higher SSIM at 128x128): {summary['success']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
