@@ -83,8 +83,8 @@ def main(argv=None) -> int:
         seeds[name] = {"device": device or "?", "splits": {
             s: seed_reading(Path(folder), baseline, s) for s in SPLITS}}
     live = [n for n, s in seeds.items() if s["splits"]["standard"]["live"]]
-    rows = ["| seed | device | split | meter: abs own - scene mean, dB [low] | signed, dB | "
-            "own - (Delta W = 0), dB | spread | (c) - (a), dB [95% t over scenes] | counts |",
+    rows = [("| seed | device | split | meter: abs own - scene mean, dB [low] | signed, dB | "
+             "own - (Delta W = 0), dB | spread | (c) - (a), dB [95% t over scenes] | counts |"),
             "|---|---|---|---|---|---|---|---|---|"]
     for name, s in seeds.items():
         for split, r in s["splits"].items():
