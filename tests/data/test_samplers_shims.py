@@ -4,6 +4,8 @@ splitting across workers and ranks."""
 import json
 import math
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -52,6 +54,33 @@ def test_bounded_left_index_and_targets():
     # Targets are drawn with replacement from [left, right] inclusive: 4 draws from 26 frames
     # hit a context frame with probability 1 - (24/26)^4 = 27%.
     assert 0.2 < coincide / 3000 < 0.35
+
+
+def test_targets_beyond_the_context_views_reach_that_far_and_no_further():
+    base = ViewSamplerBoundedCfg(warm_up_steps=0, min_distance_between_context_views=6,
+                                 max_distance_between_context_views=6)
+    beyond = get_view_sampler(replace(base, max_distance_beyond_context_views=4), "train")
+    g = torch.Generator().manual_seed(0)
+    offsets = []  # a target's distance outside the context pair (0: between them)
+    for _ in range(3000):
+        ctx, tgt = beyond.sample("x", 24, g)
+        assert ((tgt >= 0) & (tgt <= 23)).all()  # clipped to the scene's frames
+        offsets += [int(max(ctx[0] - t, t - ctx[1], 0)) for t in tgt]
+    assert max(offsets) == 4 and set(range(5)) <= set(offsets)
+    # away from the scene's ends, 8 of the 15 frames a target may take lie outside the pair
+    assert 0.4 < np.mean(np.array(offsets) > 0) < 0.55
+    # 0 beyond is the field's sampler, draw for draw
+    plain = get_view_sampler(base, "train")
+    zero = get_view_sampler(replace(base, max_distance_beyond_context_views=0), "train")
+    g1, g2 = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    for _ in range(50):
+        a, b = plain.sample("x", 24, g1), zero.sample("x", 24, g2)
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    # targets beyond the pair and a minimum distance from it contradict each other
+    from usplat_dr.training.config import ConfigError, check_sampler_ranges
+    both = replace(base, max_distance_beyond_context_views=2, min_distance_to_context_views=1)
+    with pytest.raises(ConfigError, match="max_distance_beyond_context_views=2"):
+        check_sampler_ranges(both, {})
 
 
 def test_bounded_full_range_and_test_stage_and_too_few_frames():

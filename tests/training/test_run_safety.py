@@ -307,6 +307,7 @@ def test_a_training_set_that_shrank_under_a_resumed_run(run, tmp_path, capsys):
     ("dataset.view_sampler.min_distance_between_context_views=7", "<= max_distance"),
     ("dataset.view_sampler.initial_min_distance_between_context_views=-1", "must be >= 0"),
     ("dataset.view_sampler.min_distance_to_context_views=-1", "must be >= 0"),
+    ("dataset.view_sampler.max_distance_beyond_context_views=-3", "must be >= 0"),
     ("dataset.view_sampler.warm_up_steps=-5", "warm_up_steps=-5"),
     ("keep_cores_awake=sometimes", "true, false or auto"),
 ])

@@ -10,8 +10,10 @@ A set is NAME=FOLDER[:SCENES]: FOLDER holds the chunk files and ``evaluation_ind
 (a ``usplat synth`` test root, or a train stage's ``train/`` folder: its scenes are scored with
 the standard split's frames); SCENES caps how many (the index's first). A checkpoint is a
 shipped name, a checkpoint file or a run folder (its ``checkpoints/last.ckpt``), or
-``open:NAME:STD``: the shipped (c) NAME with its gate opened by STD (``model.open_gate_std``) as
-a training run with seed 0 starts (its step 0: the noise the opened gate puts in). Writes
+``open:NAME:STD[:SEED[:FEATURES]]``: the shipped (c) NAME with its gate opened by STD
+(``model.open_gate_std``) as a training run with that seed (default 0) starts, E_H reading
+FEATURES (``model.overrides.view_features``, e.g. ``primary``): its step 0, the noise the
+opened gate puts in and the new branch's initial weights. Writes
 ``meter.csv`` (per scene) and ``meter.json`` (the summaries) into ``--out``, and prints one
 line per checkpoint and set.
 """
@@ -43,10 +45,13 @@ def load_model(spec: str, device: str = "cpu"):
     if spec.startswith("open:"):
         from usplat_dr.training.config import ModelSection, model_from_config
 
-        _, name, std = spec.split(":")
-        torch.manual_seed(0)  # as the trainer seeds before it builds the model (seed=0)
+        _, name, std, *rest = spec.split(":")
+        seed = int(rest[0]) if rest else 0
+        overrides = {"view_features": rest[1]} if len(rest) > 1 else {}
+        torch.manual_seed(seed)  # as the trainer seeds before it builds the model
         return model_from_config(ModelSection(preset="tiny", variant="full", init_from=name,
-                                              open_gate_std=float(std))).eval().to(device)
+                                              open_gate_std=float(std), overrides=overrides)
+                                 ).eval().to(device)
     return load(checkpoint_path(spec), device)
 
 

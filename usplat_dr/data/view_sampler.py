@@ -63,6 +63,10 @@ class ViewSamplerBoundedCfg:
     # False reproduces the field: pixelSplat sets max_gap = min(V - 1, min_gap), so the gap is
     # always the scheduled minimum. True draws the gap from the full [min, max] range.
     full_range: bool = False
+    # > 0: targets are drawn from up to this many frames beyond each context view (clipped to
+    # the scene's frames) as well as between them: extrapolated targets in training. 0 (the
+    # field's sampler): between the context views only.
+    max_distance_beyond_context_views: int = 0
 
 
 @dataclass(frozen=True)
@@ -87,7 +91,8 @@ ViewSamplerCfg = ViewSamplerBoundedCfg | ViewSamplerEvaluationCfg | ViewSamplerA
 
 class ViewSamplerBounded:
     """Two context views ``gap`` frames apart, targets drawn uniformly (with replacement)
-    between them.
+    between them (or, with ``max_distance_beyond_context_views``, from that many frames
+    beyond each context view as well).
 
     Examples:
         >>> s = ViewSamplerBounded(ViewSamplerBoundedCfg(), "train", StepTracker(0))
@@ -141,6 +146,10 @@ class ViewSamplerBounded:
         right = left + gap
         if self.stage == "test":
             target = torch.arange(left, right + 1)
+        elif self.cfg.max_distance_beyond_context_views:
+            e = self.cfg.max_distance_beyond_context_views
+            target = torch.randint(max(0, left - e), min(num_views - 1, right + e) + 1,
+                                   (self.cfg.num_target_views,), generator=generator)
         else:
             d = self.cfg.min_distance_to_context_views
             target = torch.randint(left + d, right + 1 - d, (self.cfg.num_target_views,),

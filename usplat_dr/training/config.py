@@ -177,6 +177,11 @@ SAMPLER_RANGES = {
     "min_distance_to_context_views": (lambda c: c.min_distance_to_context_views >= 0,
                                       "must be >= 0"),
     "warm_up_steps": (lambda c: c.warm_up_steps >= 0, "must be >= 0 (0: no warm-up)"),
+    "max_distance_beyond_context_views": (
+        lambda c: c.max_distance_beyond_context_views >= 0 and not (
+            c.max_distance_beyond_context_views and c.min_distance_to_context_views),
+        ("must be >= 0 (0: targets between the context views only), and 0 while "
+         "min_distance_to_context_views ({c.min_distance_to_context_views}) is set")),
 }
 
 
