@@ -51,6 +51,10 @@ declare -A arms=(
                          tf32=false"
   [branch_primary_b32]="${branch[*]} model.open_gate_std=0.02 model.overrides.view_features=primary
                         data_loader.batch_size=$((BATCH * 2))"
+  [branch_primary_b32_beyond]="${branch[*]} model.open_gate_std=0.02
+                               model.overrides.view_features=primary
+                               data_loader.batch_size=$((BATCH * 2))
+                               dataset.view_sampler.max_distance_beyond_context_views=4"
   [joint]="model.variant=full model.init_from=tiny_baseline optimizer.lr=2e-4
            optimizer.warm_up_fraction=0.05 optimizer.hyper_lr_scale=10
            model.overrides.delta_init_std=0.01 model.overrides.delta_rank=16
