@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# The verdict with extrapolated targets (train/studies/README.md, "The verdict with
+# extrapolated targets"): the live arm's recipe at 8 scenes a step with targets up to 4 frames
+# beyond the context views, one run per seed, one thread each, JOBS at a time, each stopped
+# (SIGINT: it saves) once its step-STOP checkpoint is kept; the schedule stays the 6,000-step
+# one. Resumable: a run folder that exists is resumed.
+#
+#   JOBS=2 bash train/studies/beyond_seeds.sh 0 2 3 4      # -> outputs/beyond/seed_N
+#
+# Environment: OUT (default outputs/beyond), STOP (default 300), BEYOND (default 4; 0 runs the
+# field's sampler, the control), DATA (default outputs/big/train480), JOBS (default 2).
+set -uo pipefail
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
+cd "$ROOT"
+PY=${PYTHON:-.venv/bin/python}
+OUT=${OUT:-outputs/beyond}; STOP=${STOP:-300}; BEYOND=${BEYOND:-4}
+DATA=${DATA:-outputs/big/train480}; JOBS=${JOBS:-2}
+[ $# -gt 0 ] || { echo "give the seeds, e.g. 0 2 3 4"; exit 2; }
+mkdir -p "$OUT"
+run_seed() {
+  local seed=$1 dir="$OUT/seed_$1"
+  local kept
+  kept=$(printf "%s/checkpoints/step_%07d.ckpt" "$dir" "$STOP")
+  [ -f "$kept" ] && { echo "seed $seed: step $STOP already kept"; return 0; }
+  "$PY" -m usplat_dr train --config synthetic_tiny_depth.yaml "dataset.roots=[$DATA]" \
+    device=cpu threads=1 seed="$seed" dataset.overrides.seed="$seed" train.progress=false \
+    train.steps=6000 train.checkpoint_every=50 train.keep_every=100 train.validate_every=100 \
+    train.log_every=10 data_loader.batch_size=8 model.init_from=tiny_full \
+    train.trainable=view_specific optimizer.lr=1e-3 model.open_gate_std=0.02 \
+    model.overrides.view_features=primary \
+    dataset.view_sampler.max_distance_beyond_context_views="$BEYOND" \
+    output_dir="$dir" --resume >>"$OUT/seed_$seed.log" 2>&1 &
+  local pid=$!
+  while kill -0 "$pid" 2>/dev/null && [ ! -f "$kept" ]; do sleep 5; done
+  kill -INT "$pid" 2>/dev/null
+  wait "$pid"
+  [ -f "$kept" ] && echo "seed $seed: step $STOP kept ($kept)" || {
+    echo "seed $seed: stopped before step $STOP (see $OUT/seed_$seed.log)"; return 1; }
+}
+status=0
+for seed in "$@"; do
+  while [ "$(jobs -rp | wc -l)" -ge "$JOBS" ]; do wait -n || status=1; done
+  run_seed "$seed" &
+done
+while [ "$(jobs -rp | wc -l)" -gt 0 ]; do wait -n || status=1; done
+exit $status
