@@ -3,7 +3,6 @@ splitting across workers and ranks."""
 
 import json
 import math
-
 from dataclasses import replace
 
 import numpy as np

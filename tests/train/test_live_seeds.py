@@ -73,8 +73,12 @@ def test_one_live_seed_is_read_on_its_scenes_and_said(tmp_path):
     diffs = np.array([0.0, 0.02, -0.02, 0.01, -0.01, 0.03, -0.03, 0.0])  # mean 0: refutes
     c = write_eval(tmp_path / "c", {s: base[s] + diffs for s in study.SPLITS}, live=True)
     out = tmp_path / "out"
-    study.main(["--baseline", str(a), "--seeds", f"0={c}", "--out", str(out)])
-    lab = json.loads((out / "live_seeds.json").read_text())["labels"]["standard, all live seeds"]
+    study.main(["--baseline", str(a), "--seeds", f"0={c}", "--controls", f"ctl={c}",
+                "--out", str(out)])
+    result = json.loads((out / "live_seeds.json").read_text())
+    lab = result["labels"]["standard, all live seeds"]
+    # a control is read against (a) on the same scenes: here the same folder as the seed
+    assert np.isclose(result["controls"]["ctl"]["standard"]["minus_a"], diffs.mean())
     low, high = stats.t.interval(0.95, 7, loc=diffs.mean(), scale=stats.sem(diffs))
     assert np.isclose(lab["low"], low, atol=1e-9) and np.isclose(lab["high"], high, atol=1e-9)
     assert lab["label"] == "refutes (one live seed: interval over scenes)"

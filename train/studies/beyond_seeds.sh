@@ -8,34 +8,42 @@
 #   JOBS=2 bash train/studies/beyond_seeds.sh 0 2 3 4      # -> outputs/beyond/seed_N
 #
 # Environment: OUT (default outputs/beyond), STOP (default 300), BEYOND (default 4; 0 runs the
-# field's sampler, the control), DATA (default outputs/big/train480), JOBS (default 2).
+# field's sampler, the control), DATA (default outputs/big/train480), JOBS (default 2), ARM
+# (branch, the default: the view-specific branch alone from tiny_full; or baseline: all of
+# tiny_baseline trained the same way at peak lr 2e-4, the control (a); runs named
+# baseline_seed_N).
 set -uo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 cd "$ROOT"
 PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/beyond}; STOP=${STOP:-300}; BEYOND=${BEYOND:-4}
-DATA=${DATA:-outputs/big/train480}; JOBS=${JOBS:-2}
+DATA=${DATA:-outputs/big/train480}; JOBS=${JOBS:-2}; ARM=${ARM:-branch}
+case $ARM in
+  branch) arm=(model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3
+               model.open_gate_std=0.02 model.overrides.view_features=primary); prefix=seed ;;
+  baseline) arm=(model.init_from=tiny_baseline model.variant=baseline optimizer.lr=2e-4)
+            prefix=baseline_seed ;;
+  *) echo "ARM must be branch or baseline, got $ARM"; exit 2 ;;
+esac
 [ $# -gt 0 ] || { echo "give the seeds, e.g. 0 2 3 4"; exit 2; }
 mkdir -p "$OUT"
 run_seed() {
-  local seed=$1 dir="$OUT/seed_$1"
+  local seed=$1 dir="$OUT/${prefix}_$1"
   local kept
   kept=$(printf "%s/checkpoints/step_%07d.ckpt" "$dir" "$STOP")
   [ -f "$kept" ] && { echo "seed $seed: step $STOP already kept"; return 0; }
   "$PY" -m usplat_dr train --config synthetic_tiny_depth.yaml "dataset.roots=[$DATA]" \
     device=cpu threads=1 seed="$seed" dataset.overrides.seed="$seed" train.progress=false \
     train.steps=6000 train.checkpoint_every=50 train.keep_every=100 train.validate_every=100 \
-    train.log_every=10 data_loader.batch_size=8 model.init_from=tiny_full \
-    train.trainable=view_specific optimizer.lr=1e-3 model.open_gate_std=0.02 \
-    model.overrides.view_features=primary \
+    train.log_every=10 data_loader.batch_size=8 "${arm[@]}" \
     dataset.view_sampler.max_distance_beyond_context_views="$BEYOND" \
-    output_dir="$dir" --resume >>"$OUT/seed_$seed.log" 2>&1 &
+    output_dir="$dir" --resume >>"$dir.log" 2>&1 &
   local pid=$!
   while kill -0 "$pid" 2>/dev/null && [ ! -f "$kept" ]; do sleep 5; done
   kill -INT "$pid" 2>/dev/null
   wait "$pid"
   [ -f "$kept" ] && echo "seed $seed: step $STOP kept ($kept)" || {
-    echo "seed $seed: stopped before step $STOP (see $OUT/seed_$seed.log)"; return 1; }
+    echo "seed $seed: stopped before step $STOP (see $dir.log)"; return 1; }
 }
 status=0
 for seed in "$@"; do

@@ -13,6 +13,8 @@ Each folder is one ``usplat eval --out`` (``per_scene.csv`` and ``summary.json``
 the same for every seed (the arm trains the branch alone from the shipped model). ``--confirm``
 names the seeds whose labels confirm the splits seed 0 suggested (wide baseline and
 extrapolation): those splits are labelled over them alone and over all seeds beside it.
+``--controls NAME=FOLDER``: other models (an (a) trained another way, say) read as control -
+(a) per split, beside the rule.
 Writes ``OUT/live_seeds.md`` and ``OUT/live_seeds.json``.
 """
 
@@ -71,6 +73,9 @@ def main(argv=None) -> int:
                    help="each seed's usplat eval --out folder of its (c), and where it trained")
     p.add_argument("--confirm", nargs="*", default=[], metavar="SEED",
                    help="the seeds that confirm the wide-baseline and extrapolation readings")
+    p.add_argument("--controls", nargs="*", default=[], metavar="NAME=FOLDER",
+                   help="other models' usplat eval folders (no meter needed), each read as "
+                        "control - (a) per split, exploratory")
     p.add_argument("--out", required=True, type=Path, help="folder for the table and JSON")
     args = p.parse_args(argv)
     baseline = read_per_scene(args.baseline / "per_scene.csv", {"psnr": True})
@@ -117,13 +122,31 @@ def main(argv=None) -> int:
                         f"[{lab['low']:+.3f}, {lab['high']:+.3f}] | {lab['label']} |")
         else:
             rows.append(f"| {key} | none | - | - | {lab['label']} |")
+    controls = {}
+    if args.controls:
+        rows += ["", "| control (exploratory) | split | control - (a), dB [95% t over scenes] |",
+                 "|---|---|---|"]
+    for spec in args.controls:
+        name, _, folder = spec.partition("=")
+        if not name or not Path(folder, "per_scene.csv").is_file():
+            p.error(f"--controls {spec!r}: give NAME=FOLDER, FOLDER a usplat eval --out")
+        own = read_per_scene(Path(folder) / "per_scene.csv", {"psnr": True})
+        controls[name] = {}
+        for split in SPLITS:
+            keys = sorted(k for k in own if k[0] == split and k in baseline)
+            d = np.array([own[k]["psnr"] - baseline[k]["psnr"] for k in keys])
+            low, high = t_interval(d)
+            controls[name][split] = {"scenes": len(keys), "minus_a": float(d.mean()),
+                                     "low": low, "high": high}
+            rows.append(f"| {name} | {split} | {d.mean():+.3f} [{low:+.3f}, {high:+.3f}] |")
     text = "\n".join(rows)
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
     with atomic_open(args.out / "live_seeds.md", "w") as f:
         f.write(text + "\n")
     with atomic_open(args.out / "live_seeds.json", "w") as f:
-        json.dump({"seeds": seeds, "live": live, "labels": labels}, f, indent=1)
+        json.dump({"seeds": seeds, "live": live, "labels": labels, "controls": controls}, f,
+                  indent=1)
     return 0
 
 
