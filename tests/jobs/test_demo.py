@@ -78,6 +78,10 @@ def test_demo_quick_end_to_end(wheel_demo):
     assert "| (c) live (`tiny_full_live`" in text
     live = json.loads((tmp_path / "eval_shipped_live" / "summary.json").read_text())
     assert "view_specificity" in live["splits"]["standard"]
+    # the (c) trained beyond the context: its meter where the demo's scenes have the split
+    beyond = json.loads((tmp_path / "eval_shipped_beyond" / "summary.json").read_text())
+    assert "view_specificity" in beyond["splits"]["standard"]
+    assert "| (c) trained beyond the context (`tiny_full_beyond`), standard |" in text
     images = [line for line in text.splitlines() if line.startswith("![")]
     assert all((tmp_path / line.split("(")[1].rstrip(")")).is_file() for line in images)
 
@@ -245,3 +249,33 @@ def test_report_shows_the_live_c_meter_and_its_psnr_against_a(tmp_path):
             "0.0900 dB [0.0600, 0.1200] | -0.0300 dB [-0.1700, +0.1100] | yes |") in text
     assert "renders 25.69 dB against the shipped (a)'s 20.00 dB" in text and "+0.0056 dB" in text
     assert "live (c)" not in "\n".join(meter_lines(results))  # no live summary: no row
+
+
+def test_report_shows_the_beyond_c_meter_per_split_and_its_psnr_where_it_varies(tmp_path):
+    """The (c) trained with extrapolated targets: a meter row per split it was evaluated on,
+    and a sentence with its extrapolation PSNR against the shipped (a)'s there."""
+    import dataclasses
+
+    from usplat_dr.jobs.report import meter_lines
+
+    results = demo_results(tmp_path / "demo", {})
+
+    def meter(abs_db, signed, live):
+        return {"scenes": 4, "spread_rel_w": {"to_disparity.0": 0.13},
+                "d_mean_abs": {"mean_db": abs_db, "low": abs_db / 2, "high": abs_db * 1.5},
+                "d_mean": {"mean_db": signed, "low": signed - 0.2, "high": signed + 0.2},
+                "d_zero": {"mean_db": 2.4, "low": 2.1, "high": 2.7}, "live": live}
+    beyond = {"splits": {
+        "standard": {"psnr": 25.4, "scenes": 4, "view_specificity": meter(0.03, 0.0, False)},
+        "extrapolation": {"psnr": 24.3, "scenes": 4,
+                          "view_specificity": meter(1.9, 1.36, True)}}}
+    base = {"splits": {**results.summaries["base"]["splits"],
+                       "extrapolation": {"psnr": 21.9, "scenes": 4}}}
+    summaries = {**results.summaries, "base": base}
+    text = "\n".join(meter_lines(dataclasses.replace(results, beyond=beyond,
+                                                      summaries=summaries)))
+    assert ("| (c) trained beyond the context (`tiny_full_beyond`), extrapolation | 4 | 1.3e-01 | "
+            "1.9000 dB [0.9500, 2.8500] | +2.4000 dB [+2.1000, +2.7000] | yes |") in text
+    assert "beyond the context (`tiny_full_beyond`), standard | 4 |" in text
+    assert "renders 24.30 dB against the shipped (a)'s 21.90 dB" in text and "+1.3600 dB" in text
+    assert "tiny_full_beyond" not in "\n".join(meter_lines(results))  # no summary: no row

@@ -103,7 +103,7 @@ def main(argv=None) -> int:
     for split in SPLITS:
         for group, names in (("all live seeds", live),
                              ("confirming live seeds", [n for n in live if n in args.confirm])):
-            if split == "standard" and group != "all live seeds":
+            if group != "all live seeds" and (split == "standard" or not args.confirm):
                 continue
             means = [seeds[n]["splits"][split]["c_minus_a"] for n in names]
             one = (seeds[names[0]]["splits"][split]["low"],

@@ -35,6 +35,7 @@ from usplat_dr.jobs.report import DemoResults, write_report
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import (
     BASE,
+    BEYOND,
     BUDGETED,
     CHECKPOINTS,
     LIVE,
@@ -77,7 +78,8 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     shipped = shipped_checkpoints(checkpoints)
-    missing = sorted({BASE, *SHIPPED.values(), *BUDGETED.values(), LIVE} - set(shipped))
+    missing = sorted({BASE, *SHIPPED.values(), *BUDGETED.values(), LIVE, BEYOND}
+                     - set(shipped))
     if missing:
         raise FileNotFoundError(f"the manifest in {checkpoints} lacks {missing}")
     t_start = time.perf_counter()
@@ -103,6 +105,12 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
                     out / "eval_shipped_live", label="live (c)", view_meter=("standard",),
                     images_per_split=0)
     timings["evaluation shipped live (c)"] = time.perf_counter() - t
+    t = time.perf_counter()  # the (c) trained with extrapolated targets: where it varies
+    wanted = [s for s in ("standard", "extrapolation") if s in indices]
+    beyond = evaluate(load_model(shipped[BEYOND])[0], dataset, {s: indices[s] for s in wanted},
+                      out / "eval_shipped_beyond", label="(c) beyond", view_meter=True,
+                      images_per_split=0)
+    timings["evaluation shipped (c) trained beyond the context"] = time.perf_counter() - t
     verdict_chart(verdict, out / "verdict.png")
 
     # ---- brief fine-tuning from the shipped (a): training works ----
@@ -143,8 +151,8 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
         worst=worst, bench=bench, stable={v: stability(r) for v, r in runs.items()},
         verdict=verdict, tuned=tuned, provenance=provenance([data]), allocation=allocation,
         manifest={n: manifest[n]
-                  for n in (BASE, *SHIPPED.values(), *BUDGETED.values(), LIVE)},
-        registered=registered_verdict(checkpoints), live=live))
+                  for n in (BASE, *SHIPPED.values(), *BUDGETED.values(), LIVE, BEYOND)},
+        registered=registered_verdict(checkpoints), live=live, beyond=beyond))
     print(f"report: {report}")
     return report
 

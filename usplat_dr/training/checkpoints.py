@@ -480,6 +480,11 @@ BUDGETED = {"baseline": "tiny_baseline_budget", "full": "tiny_full_budget"}
 #: E_H reading the primary network's features, trained alone at 32 scenes a step on a GPU; an
 #: add-on on tiny_full). SHIPPED's (c) stays the paper's form; the demo shows this one's meter.
 LIVE = "tiny_full_live"
+#: The same branch trained with targets beyond the context views as well as between them
+#: (``dataset.view_sampler.max_distance_beyond_context_views=4``; 300 steps on a CPU): its
+#: Delta W differs between targets most where they leave the context pair (extrapolation); an
+#: add-on on tiny_full. The demo shows its meter on the standard and extrapolation splits.
+BEYOND = "tiny_full_beyond"
 
 
 def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
