@@ -174,7 +174,9 @@ def meter_lines(r: DemoResults) -> list[str]:
     if not rows:
         return []
     lines = ["## Is (c)'s view-specific branch live? (the view-specificity meter)", "",
-             ("Per scene of the standard split: how much Delta W differs between the scene's "
+             ("Per scene of the standard split (and of the extrapolation split for the (c) "
+              "trained beyond the context, where its Delta W varies): how much Delta W differs "
+              "between the scene's "
               "target views (relative to ||W||, the largest of the four layers), and what that "
               "difference does to the renders: PSNR with each target's own Delta W minus PSNR "
               "with the scene's mean Delta W for every target (mean of the absolute value; 0 "
