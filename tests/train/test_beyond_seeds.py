@@ -16,7 +16,7 @@ def test_seeds_stop_at_their_kept_step_with_targets_beyond(tmp_path, trainer_set
     import sys
 
     env = {**os.environ, "PYTHON": sys.executable, "OUT": str(tmp_path / "runs"),
-           "STOP": "100", "DATA": str(trainer_set / "train"), "JOBS": "2"}
+           "STOP": "100", "DATA": str(trainer_set), "JOBS": "2"}
     proc = subprocess.run(["bash", str(SCRIPT), "3", "4"], env=env, capture_output=True,
                           text=True, timeout=1200, check=False)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
