@@ -10,8 +10,9 @@
 # Environment: OUT (default outputs/beyond), STOP (default 300), BEYOND (default 4; 0 runs the
 # field's sampler, the control), DATA (default outputs/big/train480), JOBS (default 2), ARM
 # (branch, the default: the view-specific branch alone from tiny_full; or baseline: all of
-# tiny_baseline trained the same way at peak lr 2e-4, the control (a); runs named
-# baseline_seed_N).
+# tiny_baseline trained the same way at peak lr 2e-4, the control (a), runs named
+# baseline_seed_N; or full: the paper's protocol, (c) from tiny_baseline with every weight
+# trained and its hypernetworks' outputs starting at zero, runs named full_seed_N).
 set -uo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 cd "$ROOT"
@@ -23,7 +24,9 @@ case $ARM in
                model.open_gate_std=0.02 model.overrides.view_features=primary); prefix=seed ;;
   baseline) arm=(model.init_from=tiny_baseline model.variant=baseline optimizer.lr=2e-4)
             prefix=baseline_seed ;;
-  *) echo "ARM must be branch or baseline, got $ARM"; exit 2 ;;
+  full) arm=(model.init_from=tiny_baseline model.variant=full optimizer.lr=2e-4)
+        prefix=full_seed ;;
+  *) echo "ARM must be branch, baseline or full, got $ARM"; exit 2 ;;
 esac
 [ $# -gt 0 ] || { echo "give the seeds, e.g. 0 2 3 4"; exit 2; }
 mkdir -p "$OUT"
