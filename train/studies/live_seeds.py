@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import usplat_dr  # noqa: F401  (libLLVM before drjit)
-from usplat_dr.evaluation.verdict import REFUTE, SUPPORT, read_per_scene, t_interval
+from usplat_dr.evaluation.verdict import read_per_scene, rule_label, t_interval
 from usplat_dr.io import atomic_open
 
 #: Splits the amendment reads beside the standard one.
@@ -56,8 +56,7 @@ def rule(means: list[float], scene_interval: tuple[float, float]) -> dict:
         return {"seeds": 0, "label": "no live seed"}
     low, high = t_interval(means) if len(means) >= 2 else scene_interval
     mean = float(np.mean(means))
-    label = ("supports" if mean >= SUPPORT and low > 0 else "refutes" if high < REFUTE
-             else "inconclusive")
+    label = rule_label(mean, low, high)
     if len(means) == 1:
         label += " (one live seed: interval over scenes)"
     return {"seeds": len(means), "mean": mean, "low": float(low), "high": float(high),

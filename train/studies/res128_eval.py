@@ -20,10 +20,12 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch.utils.data import default_collate
 
 import usplat_dr  # noqa: F401  (libLLVM first)
+from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
-from usplat_dr.evaluation import depth_metrics, held_out_scenes, load_example, nan_mean
+from usplat_dr.evaluation import depth_metrics, held_out_scenes, nan_mean
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.io import atomic_open, write_json
@@ -41,6 +43,12 @@ def upsample(images: torch.Tensor, factor: int) -> torch.Tensor:
     flat = images.reshape(-1, *shape[-3:])
     up = F.interpolate(flat, scale_factor=factor, mode="bicubic", align_corners=False)
     return up.clamp(0, 1).reshape(*shape[:-2], *up.shape[-2:])
+
+
+def examples(dataset: dict, index: str):
+    """The split's examples as batches of 1, read once in the index's order."""
+    for example in dataset_from_section({**dataset, "evaluation_index": index}, "test"):
+        yield default_collate([example])
 
 
 def render(model, batch) -> tuple[torch.Tensor, float]:
@@ -72,8 +80,12 @@ def main(argv=None) -> int:
     set128, index, scenes = held_out_scenes(args.data, "standard", args.scenes, size=128)
     set64 = {**set128, "image_shape": [64, 64]}
     rows, shown = [], []
-    for k, scene in enumerate(scenes):
-        b128, b64 = load_example(set128, index, scene), load_example(set64, index, scene)
+    # one pass over the chunks at each size (the same scenes, in the same order)
+    for k, (b128, b64) in enumerate(zip(examples(set128, index), examples(set64, index))):
+        if k == len(scenes):
+            break
+        scene = b128["scene"][0]
+        assert b64["scene"][0] == scene and scene == scenes[k], (scene, scenes[k])
         gt128, gt64 = b128["target"]["image"][0], b64["target"]["image"][0]
         pred128, rel128 = render(big, b128)
         pred64, rel64 = render(small, b64)

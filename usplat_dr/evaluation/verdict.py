@@ -92,11 +92,23 @@ class Comparison:
             return ""
         if self.seeds < 2:
             return "needs >= 2 seeds"
-        if self.mean >= SUPPORT and self.seed_low > 0:
-            return "supports"
-        if self.seed_high < REFUTE:
-            return "refutes"
-        return "inconclusive"
+        return rule_label(self.mean, self.seed_low, self.seed_high)
+
+
+def rule_label(mean: float, low: float, high: float) -> str:
+    """The pre-registered rule on a PSNR difference (dB) and its interval: 'supports' at
+    ``mean >= SUPPORT`` with ``low > 0``, 'refutes' when ``high < REFUTE``, else
+    'inconclusive'.
+
+    Examples:
+        >>> rule_label(0.4, 0.1, 0.7), rule_label(0.0, -0.05, 0.05), rule_label(0.2, 0.1, 0.3)
+        ('supports', 'refutes', 'inconclusive')
+    """
+    if mean >= SUPPORT and low > 0:
+        return "supports"
+    if high < REFUTE:
+        return "refutes"
+    return "inconclusive"
 
 
 def t_interval(values, level: float = 0.95) -> tuple[float, float]:
