@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy import stats
 
 SCRIPT = Path(__file__).parents[2] / "train" / "studies" / "live_seeds.py"
@@ -82,3 +83,40 @@ def test_one_live_seed_is_read_on_its_scenes_and_said(tmp_path):
     low, high = stats.t.interval(0.95, 7, loc=diffs.mean(), scale=stats.sem(diffs))
     assert np.isclose(lab["low"], low, atol=1e-9) and np.isclose(lab["high"], high, atol=1e-9)
     assert lab["label"] == "refutes (one live seed: interval over scenes)"
+
+
+def test_paired_baselines_read_each_seed_against_its_own_a(tmp_path):
+    """--baseline SEED=FOLDER: (c) - (a) per seed against that seed's (a); --live-split picks
+    the split whose meter decides which seeds count."""
+    rng = np.random.default_rng(1)
+    folders, baselines, expected = {}, {}, {}
+    for seed, off in (("0", 0.2), ("1", 0.3), ("2", 0.4)):
+        base = {s: 25 + rng.normal(size=8) for s in study.SPLITS}
+        d = off + 0.05 * rng.normal(size=8)
+        expected[seed] = d.mean()
+        baselines[seed] = write_eval(tmp_path / f"a{seed}", base, live=False)
+        folders[seed] = write_eval(tmp_path / f"c{seed}", {s: base[s] + d for s in base},
+                                   live=True)
+    out = tmp_path / "out"
+    assert study.main(["--baseline", *[f"{k}={v}" for k, v in baselines.items()],
+                       "--live-split", "extrapolation",
+                       "--seeds", *[f"{k}={v}" for k, v in folders.items()],
+                       "--out", str(out)]) == 0
+    result = json.loads((out / "live_seeds.json").read_text())
+    assert result["paired"] and result["live_split"] == "extrapolation"
+    for seed, mean in expected.items():
+        # each seed against its own (a): a shared (a) would mix the seeds' base noise in
+        got = result["seeds"][seed]["splits"]["standard"]["c_minus_a"]
+        assert np.isclose(got, mean, atol=1e-9)
+    means = list(expected.values())
+    half = stats.t.ppf(0.975, 2) * np.std(means, ddof=1) / np.sqrt(3)
+    lab = result["labels"]["standard, all live seeds"]
+    assert np.isclose(lab["low"], np.mean(means) - half, atol=1e-9)
+
+
+def test_a_seed_without_its_own_baseline_is_an_error(tmp_path):
+    base = {s: np.full(8, 25.0) for s in study.SPLITS}
+    a = write_eval(tmp_path / "a", base, live=False)
+    c = write_eval(tmp_path / "c", base, live=True)
+    with pytest.raises(SystemExit):
+        study.main(["--baseline", f"0={a}", "--seeds", f"1={c}", "--out", str(tmp_path / "o")])

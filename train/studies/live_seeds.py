@@ -1,8 +1,9 @@
 """Seeds of the live view-specific arm, read by the rule registered for them
 (train/studies/README.md, "Seeds of the live arm"): per seed and split, the view-specificity
 meter of its (c) and (c) - (a) in PSNR over the split's scenes; a seed counts only if its
-branch is live on the standard split; over the live seeds, the verdict's rule on the seed-level
-t interval (with one live seed, the interval over scenes, and the label says it rests on one).
+branch is live on the standard split (or the one ``--live-split`` names); over the live seeds,
+the verdict's rule on the seed-level t interval (with one live seed, the interval over scenes,
+and the label says it rests on one).
 
     python train/studies/live_seeds.py --baseline outputs/live/gpu_seeds/eval_a \\
         --seeds 0=outputs/live/gpu_seeds/eval_tiny_full_live:cuda \\
@@ -10,7 +11,11 @@ t interval (with one live seed, the interval over scenes, and the label says it 
         --confirm 1 2 3 4 --out outputs/live/gpu_seeds/verdict
 
 Each folder is one ``usplat eval --out`` (``per_scene.csv`` and ``summary.json``); the (a) is
-the same for every seed (the arm trains the branch alone from the shipped model). ``--confirm``
+the same for every seed (the arm trains the branch alone from the shipped model), or, with
+``--baseline SEED=FOLDER ...``, each seed's own (a) trained the same way (the verdict's design:
+(c) - (a) paired by seed). ``--live-split`` names the split whose meter decides whether a seed
+counts (default standard; the paper's-protocol verdict with extrapolated targets reads
+extrapolation). ``--confirm``
 names the seeds whose labels confirm the splits seed 0 suggested (wide baseline and
 extrapolation): those splits are labelled over them alone and over all seeds beside it.
 ``--controls NAME=FOLDER``: other models (an (a) trained another way, say) read as control -
@@ -49,6 +54,24 @@ def seed_reading(folder: Path, baseline: dict, split: str) -> dict:
             "live": bool(meter["live"]), "spread": max(meter["spread_rel_w"].values())}
 
 
+def read_baselines(parser, specs: list[str]) -> dict:
+    """``--baseline``: one FOLDER (key None, every seed's (a)) or SEED=FOLDER items."""
+    if len(specs) == 1 and "=" not in specs[0]:
+        folder = Path(specs[0])
+        if not (folder / "per_scene.csv").is_file():
+            parser.error(f"--baseline {specs[0]!r}: not a usplat eval --out folder "
+                         "(no per_scene.csv)")
+        return {None: read_per_scene(folder / "per_scene.csv", {"psnr": True})}
+    out = {}
+    for spec in specs:
+        name, _, folder = spec.partition("=")
+        if not name or not Path(folder, "per_scene.csv").is_file():
+            parser.error(f"--baseline {spec!r}: give one FOLDER, or SEED=FOLDER per seed, "
+                         "FOLDER a usplat eval --out")
+        out[name] = read_per_scene(Path(folder) / "per_scene.csv", {"psnr": True})
+    return out
+
+
 def rule(means: list[float], scene_interval: tuple[float, float]) -> dict:
     """The verdict's rule over the live seeds' means (seed-level t interval); with one seed,
     on that seed's interval over scenes, said in the label."""
@@ -66,8 +89,11 @@ def rule(means: list[float], scene_interval: tuple[float, float]) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--baseline", required=True, type=Path,
-                   help="usplat eval --out folder of (a)")
+    p.add_argument("--baseline", required=True, nargs="+", metavar="FOLDER | SEED=FOLDER",
+                   help="usplat eval --out folder of (a), one for every seed, or one per seed "
+                        "as SEED=FOLDER (paired by seed)")
+    p.add_argument("--live-split", default="standard", choices=SPLITS,
+                   help="the split whose meter decides whether a seed counts")
     p.add_argument("--seeds", required=True, nargs="+", metavar="SEED=FOLDER[:DEVICE]",
                    help="each seed's usplat eval --out folder of its (c), and where it trained")
     p.add_argument("--confirm", nargs="*", default=[], metavar="SEED",
@@ -77,16 +103,19 @@ def main(argv=None) -> int:
                         "control - (a) per split, exploratory")
     p.add_argument("--out", required=True, type=Path, help="folder for the table and JSON")
     args = p.parse_args(argv)
-    baseline = read_per_scene(args.baseline / "per_scene.csv", {"psnr": True})
+    baselines = read_baselines(p, args.baseline)
     seeds = {}
     for spec in args.seeds:
         name, _, rest = spec.partition("=")
         folder, _, device = rest.partition(":")
         if not name or not folder or not Path(folder, "summary.json").is_file():
             p.error(f"--seeds {spec!r}: give SEED=FOLDER[:DEVICE], FOLDER a usplat eval --out")
+        if name not in baselines and None not in baselines:
+            p.error(f"--seeds {spec!r}: no --baseline {name}=FOLDER for this seed")
+        baseline = baselines.get(name, baselines.get(None))
         seeds[name] = {"device": device or "?", "splits": {
             s: seed_reading(Path(folder), baseline, s) for s in SPLITS}}
-    live = [n for n, s in seeds.items() if s["splits"]["standard"]["live"]]
+    live = [n for n, s in seeds.items() if s["splits"][args.live_split]["live"]]
     rows = [("| seed | device | split | meter: abs own - scene mean, dB [low] | signed, dB | "
              "own - (Delta W = 0), dB | spread | (c) - (a), dB [95% t over scenes] | counts |"),
             "|---|---|---|---|---|---|---|---|---|"]
@@ -130,6 +159,9 @@ def main(argv=None) -> int:
         if not name or not Path(folder, "per_scene.csv").is_file():
             p.error(f"--controls {spec!r}: give NAME=FOLDER, FOLDER a usplat eval --out")
         own = read_per_scene(Path(folder) / "per_scene.csv", {"psnr": True})
+        if None not in baselines:
+            p.error("--controls needs one --baseline FOLDER for every seed")
+        baseline = baselines[None]
         controls[name] = {}
         for split in SPLITS:
             keys = sorted(k for k in own if k[0] == split and k in baseline)
@@ -144,7 +176,8 @@ def main(argv=None) -> int:
     with atomic_open(args.out / "live_seeds.md", "w") as f:
         f.write(text + "\n")
     with atomic_open(args.out / "live_seeds.json", "w") as f:
-        json.dump({"seeds": seeds, "live": live, "labels": labels, "controls": controls}, f,
+        json.dump({"seeds": seeds, "live": live, "live_split": args.live_split,
+                   "paired": None not in baselines, "labels": labels, "controls": controls}, f,
                   indent=1)
     return 0
 
