@@ -178,36 +178,6 @@ def test_the_torch_entry_reuses_every_kernel_for_fresh_tensors_of_the_same_shape
     assert _kernel_hashes(lambda: _render_fwd_bwd(fresh)) == first
 
 
-def test_broadcast_output_gradients_need_no_torch_copy():
-    # the gradient of out.color.sum() reaches the bridge as a broadcast (stride 0): it must give
-    # the gradients a materialised all-ones gradient gives, without a torch copy (a parallel
-    # operation that wakes torch's OpenMP workers; the bridge copies with NumPy)
-    from torch.profiler import ProfilerActivity, profile
-
-    scene = isotropic_scene(300, 32, sh_degree=1)
-
-    def grads(broadcast: bool):
-        leaves = [t.clone().requires_grad_(True) for t in (scene.means, scene.covariances,
-                                                           scene.sh_coefficients,
-                                                           scene.opacities)]
-        out = rasterize(*scene.args()[:6], *leaves)
-        outputs = (out.color, out.alpha, out.depth)
-        if broadcast:
-            with profile(activities=[ProfilerActivity.CPU]) as prof:
-                (out.color.sum() + out.alpha.sum() + out.depth.sum()).backward()
-            copies = [e.name for e in prof.events() if e.name in ("aten::contiguous",
-                                                                  "aten::copy_", "aten::clone")]
-            assert copies == [], copies
-        else:
-            torch.autograd.backward(outputs, [torch.ones_like(o) for o in outputs])
-        return [t.grad for t in leaves]
-
-    # both orders sum the same per-pixel values; atomics reorder float sums between runs
-    # (test_repeated_gradients_agree_to_summation_order), hence the relative 1e-5
-    for a, b in zip(grads(True), grads(False)):
-        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * b.abs().max().item())
-
-
 # ---- Invalid input ----
 # Under pytest, jaxtyping's import hook checks annotations at run time and would reject some of
 # these inputs first (with a TypeCheckError). Users run without it, so test the function as they

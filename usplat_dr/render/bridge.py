@@ -13,7 +13,6 @@ import numpy as np
 import torch
 from jaxtyping import Float
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 from usplat_dr import _threads
 from usplat_dr.backend import require_cuda, require_llvm
@@ -112,29 +111,6 @@ def _wrapped(image_shape: tuple[int, int], settings: RasterSettings):
     return render
 
 
-class _DenseGradients(torch.autograd.Function):
-    """Identity on the rasteriser's CPU outputs; in the backward, a gradient that is not
-    contiguous is copied to a contiguous one by NumPy, on this thread.
-
-    ``drjit.wrap``'s backward imports each output's gradient with ``Tensor.contiguous()``. The
-    gradient of a ``.sum()`` is a broadcast (stride 0), so that is a parallel torch copy per
-    output (196,608 floats for a 256x256 colour image), each of which wakes torch's OpenMP
-    workers after Dr.Jit's kernels let them fall asleep: 4-15 ms a copy on our 2-core VMs
-    (docs/rasteriser_notes.md, "The torch entry's backward without torch copies"). NumPy
-    copies the same bytes in about 0.1 ms without another thread.
-    """
-
-    @staticmethod
-    def forward(ctx, *tensors):
-        return tuple(t.view_as(t) for t in tensors)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, *grads):
-        return tuple(g if g is None or g.is_contiguous()
-                     else torch.from_numpy(np.ascontiguousarray(g.numpy())) for g in grads)
-
-
 @functools.cache
 def _warn_spinning_openmp() -> None:
     """Once per process, where torch was imported before ``usplat_dr`` and runs more than one
@@ -206,7 +182,5 @@ def rasterize(
     tensors = [t.contiguous() for t in (extrinsics, intrinsics, near, far, background_color,
                                         means, covariances, sh_coefficients, opacities)]
     color, alpha, depth, radii, num_pairs = _wrapped(tuple(image_shape), settings)(*tensors)
-    if extrinsics.device.type == "cpu" and torch.is_grad_enabled() and color.requires_grad:
-        color, alpha, depth = _DenseGradients.apply(color, alpha, depth)
     return RenderOutput(color=color, alpha=alpha, depth=depth,
                         aux={"num_pairs": num_pairs, "radii": radii.reshape(b, g)})
