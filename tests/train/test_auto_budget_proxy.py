@@ -43,3 +43,62 @@ def test_the_losses_are_the_psnr_differences():
     assert math.isclose(proxy, 20 * math.log10(0.06 / 0.01), abs_tol=1e-4)
     assert math.isclose(real, 20 * math.log10(0.035 / 0.01), abs_tol=1e-4)
     assert found[1.0] == (0.0, 0.0)
+
+
+def write_proxy_csv(path, per_scene):
+    import csv
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, study.FIELDS)
+        w.writeheader()
+        for scene, found in per_scene.items():
+            for keep, (proxy, real) in found.items():
+                w.writerow({"scene": scene, "keep": keep, "proxy_loss": proxy, "real_loss": real})
+
+
+def test_the_calibration_line_and_margin_match_numpy():
+    import numpy as np
+    rng = np.random.default_rng(0)
+    per_scene = {}
+    for k in range(12):
+        proxy = {keep: float(rng.uniform(0, 5) * (1 - keep)) for keep in (0.3, 0.5)}
+        per_scene[f"indoor_{k:03d}"] = {
+            1.0: (0.0, 0.0),
+            **{keep: (p, 0.1 + 0.2 * p + float(rng.normal(0, 0.05))) for keep, p in proxy.items()}}
+    fits = study.calibrate(per_scene, 0.9)
+    for keep in (0.3, 0.5):
+        x = np.array([f[keep][0] for f in per_scene.values()])
+        y = np.array([f[keep][1] for f in per_scene.values()])
+        slope, intercept = np.polyfit(x, y, 1)  # an independent least-squares fit
+        margin = np.quantile(y - (intercept + slope * x), 0.9)
+        # float64 on both sides: the two solvers agree to rounding
+        assert np.allclose(fits[keep], (intercept, slope, margin), atol=1e-9)
+    assert sorted(fits) == [0.3, 0.5]  # no line for keeping everything
+
+
+def test_the_calibrated_count_keeps_the_smallest_budget_predicted_within_tolerance():
+    fits = {0.1: (0.5, 1.0, 0.1), 0.3: (0.0, 0.5, 0.05), 0.5: (0.0, 0.1, 0.0)}
+    found = {0.1: (1.0, 9.0), 0.3: (0.2, 9.0), 0.5: (0.1, 9.0), 1.0: (0.0, 0.0)}
+    # predicted: 0.1 -> 1.6, 0.3 -> 0.15, 0.5 -> 0.01
+    assert study.calibrated_choice(found, fits, 0.2) == 0.3
+    assert study.calibrated_choice(found, fits, 0.05) == 0.5
+    assert study.calibrated_choice(found, fits, 0.001) == 1.0  # none predicted within: all
+
+
+def test_main_reads_a_calibration_and_reports_per_kind(tmp_path, capsys):
+    import json
+    cal = {f"object_{k:03d}": {1.0: (0.0, 0.0), 0.5: (float(k), 0.1 * k)} for k in range(5)}
+    write_proxy_csv(tmp_path / "cal.csv", cal)
+    out = tmp_path / "out"
+    out.mkdir()
+    held = {"indoor_000": {1.0: (0.0, 0.0), 0.5: (1.0, 0.1)},
+            "outdoor_000": {1.0: (0.0, 0.0), 0.5: (4.0, 0.4)}}
+    write_proxy_csv(out / "proxy.csv", held)
+    assert study.main(["--data", "unused", "--reuse", "--calibration", str(tmp_path / "cal.csv"),
+                       "--out", str(out)]) == 0
+    rows = json.loads((out / "summary.json").read_text())["rows"]
+    # the line through the calibration is real = 0.1 proxy exactly (margin 0): at 0.2 dB the
+    # indoor scene (predicted 0.1) keeps half, the outdoor one (0.4) keeps all
+    got = rows["calibrated"]["0.2"]
+    assert got["chosen"] == {"indoor_000": 0.5, "outdoor_000": 1.0}
+    assert got["mean_kept_by_kind"] == {"indoor": 0.5, "outdoor": 1.0}
+    assert "outdoor 100% (1)" in capsys.readouterr().out

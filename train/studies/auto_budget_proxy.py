@@ -11,6 +11,13 @@ the study prints, per tolerance, the mean budget kept and the mean and worst rea
     python train/studies/auto_budget_proxy.py --checkpoint tiny_full --rank-by dither \\
         --data outputs/big/test5000 --scenes 20 --out outputs/auto_budget
 
+``--calibration FILE`` (another set's ``proxy.csv``, say a development set's): the proxy
+calibrated there. Per budget, the real loss predicted by a least-squares line in the proxy
+loss, plus a margin, the ``--quantile`` of that line's residuals on the calibration scenes;
+the count keeps the smallest budget whose predicted loss plus margin is within the tolerance
+(``calibrated_choice``), and the study prints the same table for it, with the mean budget per
+scene kind.
+
 Writes ``proxy.csv`` (one row per scene and budget) and ``summary.json``.
 """
 
@@ -55,6 +62,66 @@ def losses(model, x, targets_image, keeps, rank_by: str) -> dict:
     return found
 
 
+def read_proxy_csv(path) -> dict:
+    """``proxy.csv`` as {scene: {keep: (proxy loss, real loss)}}."""
+    found = {}
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            found.setdefault(row["scene"], {})[float(row["keep"])] = (
+                float(row["proxy_loss"]), float(row["real_loss"]))
+    return found
+
+
+def calibrate(per_scene: dict, quantile: float) -> dict:
+    """{keep: (intercept, slope, margin)}: per budget below 1, the least-squares line of the
+    real loss in the proxy loss over the calibration scenes, and the ``quantile`` of its
+    residuals (real - line) as the margin."""
+    keeps = sorted({k for found in per_scene.values() for k in found if k < 1.0})
+    fits = {}
+    for keep in keeps:
+        pairs = [found[keep] for found in per_scene.values() if keep in found]
+        if len(pairs) < 3:
+            raise ValueError(f"--calibration: budget {keep:g} has {len(pairs)} scenes; a line "
+                             f"and its residuals need at least 3")
+        xs = torch.tensor([p[0] for p in pairs], dtype=torch.float64)
+        ys = torch.tensor([p[1] for p in pairs], dtype=torch.float64)
+        design = torch.stack([torch.ones_like(xs), xs], dim=1)
+        coef = torch.linalg.lstsq(design, ys[:, None]).solution[:, 0]
+        residual = ys - design @ coef
+        fits[keep] = (float(coef[0]), float(coef[1]),
+                      float(torch.quantile(residual, quantile)))
+    return fits
+
+
+def calibrated_choice(found: dict, fits: dict, tolerance: float) -> float:
+    """The smallest budget whose predicted real loss (line + margin) is within ``tolerance``;
+    1 (every Gaussian) where none is."""
+    ok = [k for k, (a, b, margin) in fits.items()
+          if k in found and a + b * found[k][0] + margin <= tolerance]
+    return min(ok, default=1.0)
+
+
+def choice_table(per_scene: dict, chosen_by, summary: dict, key: str) -> None:
+    """Print (and store under ``summary[key]``) per tolerance the mean budget kept, the mean
+    and worst real loss, and the mean budget per scene kind (the name's prefix)."""
+    print("\n| tolerance, dB | mean kept | mean real loss, dB | worst scene, dB | mean kept by "
+          "kind |\n|---|---|---|---|---|")
+    summary[key] = {}
+    for tol in TOLERANCES:
+        chosen = {s: chosen_by(found, tol) for s, found in per_scene.items()}
+        real = [per_scene[s][k][1] for s, k in chosen.items()]
+        kinds = {}
+        for scene, keep in chosen.items():
+            kinds.setdefault(scene.split("_")[0], []).append(keep)
+        by_kind = {k: statistics.mean(v) for k, v in sorted(kinds.items())}
+        summary[key][str(tol)] = {"mean_kept": statistics.mean(chosen.values()),
+                                  "mean_loss_db": statistics.mean(real), "worst_db": max(real),
+                                  "mean_kept_by_kind": by_kind, "chosen": chosen}
+        kind_text = ", ".join(f"{k} {v:.0%} ({len(kinds[k])})" for k, v in by_kind.items())
+        print(f"| {tol:g} | {statistics.mean(chosen.values()):.0%} | "
+              f"{statistics.mean(real):+.2f} | {max(real):+.2f} | {kind_text} |")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", default="tiny_full", help="a shipped name or a file")
@@ -63,21 +130,23 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", type=int, default=20, help="first scenes of the standard split")
     p.add_argument("--size", type=int, default=64, help="image size (the model's training size)")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="another set's proxy.csv: calibrate the proxy there (see above)")
+    p.add_argument("--quantile", type=float, default=0.9,
+                   help="the calibration residuals' quantile added as a margin")
+    p.add_argument("--reuse", action="store_true",
+                   help="read OUT/proxy.csv instead of computing it again")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
+    if args.calibration is not None and not args.calibration.is_file():
+        p.error(f"--calibration {args.calibration}: no such file (a proxy.csv this study "
+                f"wrote for another set)")
+    if not 0.0 < args.quantile < 1.0:
+        p.error(f"--quantile must be between 0 and 1, got {args.quantile}")
     torch.set_num_threads(args.threads)
-    model = load(args.checkpoint).eval()
-    dataset, index, scenes = held_out_scenes(args.data, count=args.scenes, size=args.size)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    per_scene = {}
-    for scene in scenes:
-        batch = load_example(dataset, index, scene)
-        with torch.no_grad():
-            per_scene[scene] = losses(model, model_inputs(batch, "cpu"),
-                                      batch["target"]["image"], KEEPS, args.rank_by)
-        print(scene, " ".join(f"{k:g}: {v[0]:.2f}/{v[1]:.2f}" for k, v in
-                              sorted(per_scene[scene].items())), flush=True)
+    per_scene = read_proxy_csv(out / "proxy.csv") if args.reuse else measure(args)
     with atomic_open(out / "proxy.csv", "w") as f:
         writer = csv.DictWriter(f, FIELDS)
         writer.writeheader()
@@ -86,18 +155,19 @@ def main(argv=None) -> int:
                 writer.writerow({"scene": scene, "keep": keep, "proxy_loss": proxy,
                                  "real_loss": real})
     summary = {}
-    print("\n| tolerance (proxy, dB) | mean kept | mean real loss, dB | worst scene, dB |\n"
-          "|---|---|---|---|")
-    for tol in TOLERANCES:
-        chosen = {s: min(k for k, v in found.items() if v[0] <= tol)
-                  for s, found in per_scene.items()}
-        real = [per_scene[s][k][1] for s, k in chosen.items()]
-        summary[str(tol)] = {"mean_kept": statistics.mean(chosen.values()),
-                             "mean_loss_db": statistics.mean(real), "worst_db": max(real)}
-        print(f"| {tol:g} | {summary[str(tol)]['mean_kept']:.0%} | "
-              f"{summary[str(tol)]['mean_loss_db']:+.2f} | {max(real):+.2f} |")
+    print("\nThe proxy as it is (its loss within the tolerance):")
+    choice_table(per_scene, lambda found, tol: min(k for k, v in found.items() if v[0] <= tol),
+                 summary, "proxy")
+    if args.calibration is not None:
+        fits = calibrate(read_proxy_csv(args.calibration), args.quantile)
+        summary["calibration"] = {"file": str(args.calibration), "quantile": args.quantile,
+                                  "fits": {str(k): v for k, v in fits.items()}}
+        print(f"\nCalibrated on {args.calibration} (line per budget, margin = the "
+              f"{args.quantile:g} quantile of its residuals):")
+        choice_table(per_scene, lambda found, tol: calibrated_choice(found, fits, tol),
+                     summary, "calibrated")
     print("\n| kept | mean proxy loss, dB | mean real loss, dB |\n|---|---|---|")
-    for keep in KEEPS:
+    for keep in sorted({k for f in per_scene.values() for k in f if k < 1.0}):
         proxy = statistics.mean(f[keep][0] for f in per_scene.values())
         real = statistics.mean(f[keep][1] for f in per_scene.values())
         summary[f"keep {keep:g}"] = {"proxy_db": proxy, "real_db": real}
@@ -105,6 +175,21 @@ def main(argv=None) -> int:
     write_json(out / "summary.json", {"checkpoint": args.checkpoint, "rank_by": args.rank_by,
                                       "data": args.data, "rows": summary})
     return 0
+
+
+def measure(args) -> dict:
+    """{scene: losses(...)} over the set's first ``args.scenes`` scenes, printed as they come."""
+    model = load(args.checkpoint).eval()
+    dataset, index, scenes = held_out_scenes(args.data, count=args.scenes, size=args.size)
+    per_scene = {}
+    for scene in scenes:
+        batch = load_example(dataset, index, scene)
+        with torch.no_grad():
+            per_scene[scene] = losses(model, model_inputs(batch, "cpu"),
+                                      batch["target"]["image"], KEEPS, args.rank_by)
+        print(scene, " ".join(f"{k:g}: {v[0]:.2f}/{v[1]:.2f}" for k, v in
+                              sorted(per_scene[scene].items())), flush=True)
+    return per_scene
 
 
 if __name__ == "__main__":
