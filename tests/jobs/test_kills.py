@@ -49,8 +49,11 @@ sys.exit(code)
 def run(kill_at: int, argv: list[str]) -> tuple[int, int | None]:
     """(return code, commits made or None when killed) of ``usplat ARGV`` killed before the
     ``kill_at``-th commit."""
+    # one thread, fixed: by default the commands start one per free core, and a rerun on a
+    # machine that got busier in between would sum in another order and write other last digits
     proc = subprocess.run([sys.executable, "-c", CHILD, str(kill_at), "-q", *argv],
-                          capture_output=True, text=True, env=environment(), timeout=600,
+                          capture_output=True, text=True,
+                          env={**environment(), "USPLAT_THREADS": "1"}, timeout=600,
                           check=False)
     commits = [line for line in proc.stderr.splitlines() if line.startswith("COMMITS ")]
     if proc.returncode not in (0, -signal.SIGKILL):
