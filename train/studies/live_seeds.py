@@ -15,9 +15,9 @@ the same for every seed (the arm trains the branch alone from the shipped model)
 ``--baseline SEED=FOLDER ...``, each seed's own (a) trained the same way (the verdict's design:
 (c) - (a) paired by seed). ``--live-split`` names the split whose meter decides whether a seed
 counts (default standard; the paper's-protocol verdict with extrapolated targets reads
-extrapolation). ``--confirm``
-names the seeds whose labels confirm the splits seed 0 suggested (wide baseline and
-extrapolation): those splits are labelled over them alone and over all seeds beside it.
+extrapolation). ``--confirm`` names the seeds whose labels confirm the splits seed 0 suggested
+(wide baseline and extrapolation): those splits are labelled over them alone and over all
+seeds beside it.
 ``--controls NAME=FOLDER``: other models (an (a) trained another way, say) read as control -
 (a) per split, beside the rule.
 Writes ``OUT/live_seeds.md`` and ``OUT/live_seeds.json``.
