@@ -146,14 +146,17 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    per_scene = read_proxy_csv(out / "proxy.csv") if args.reuse else measure(args)
-    with atomic_open(out / "proxy.csv", "w") as f:
-        writer = csv.DictWriter(f, FIELDS)
-        writer.writeheader()
-        for scene, found in per_scene.items():
-            for keep, (proxy, real) in sorted(found.items()):
-                writer.writerow({"scene": scene, "keep": keep, "proxy_loss": proxy,
-                                 "real_loss": real})
+    if args.reuse:
+        per_scene = read_proxy_csv(out / "proxy.csv")
+    else:
+        per_scene = measure(args)
+        with atomic_open(out / "proxy.csv", "w") as f:
+            writer = csv.DictWriter(f, FIELDS)
+            writer.writeheader()
+            for scene, found in per_scene.items():
+                for keep, (proxy, real) in sorted(found.items()):
+                    writer.writerow({"scene": scene, "keep": keep, "proxy_loss": proxy,
+                                     "real_loss": real})
     summary = {}
     print("\nThe proxy as it is (its loss within the tolerance):")
     choice_table(per_scene, lambda found, tol: min(k for k, v in found.items() if v[0] <= tol),
