@@ -285,11 +285,14 @@ def main() -> None:
         reference = make_reference_fn(module_for("cuda" if args.device == "cuda" else "llvm"),
                                       pairs * tile * tile)
         _, lanes_fwd_bwd = make_fns(scene, RasterSettings(backward_scatter="lanes"))
+        traced_fwd, _ = make_fns(scene, RasterSettings(freeze_forward=False))
         for _ in range(2):
             reference()
             lanes_fwd_bwd()
+            traced_fwd()
         fns = {"fwd": fwd, "fwd_bwd": fwd_bwd, "native_fwd": n_fwd, "native_fwd_bwd": n_fwd_bwd,
-               "reference": reference, "lanes_fwd_bwd": lanes_fwd_bwd, **make_check_fns(scene)}
+               "reference": reference, "lanes_fwd_bwd": lanes_fwd_bwd, "traced_fwd": traced_fwd,
+               **make_check_fns(scene)}
         dense = size <= args.dense_max
         if dense:
             d_fwd, d_fwd_bwd = make_fns(scene, None, render_ref)
@@ -314,14 +317,15 @@ def main() -> None:
                            f"{cp[0]:.2f} ({cp[1]:.2f}) | {cn[0]:.2f} ({cn[1]:.2f}) |")
         target = TARGETS.get(size)
         goal = f"{target[0]:g} / {target[1]:g}" if target else "-"
-        ref, lfb = t["reference"], t["lanes_fwd_bwd"]
+        ref, lfb, tf = t["reference"], t["lanes_fwd_bwd"], t["traced_fwd"]
         k_goal = K_TARGETS.get(size)
         floor_rows.append(
             f"| {size}x{size} | {pairs * tile * tile:,} | {ref[0]:.2f} ({ref[1]:.2f}) | "
             f"{f[0] / ref[0]:.1f} / {fb[0] / ref[0]:.1f} | "
             + (f"{k_goal[0]:g} / {k_goal[1]:g}" if k_goal else "-")
             + f" | {launches(fwd)} / {launches(fwd_bwd)} | {lfb[0]:.1f} ({lfb[1]:.1f}) | "
-            f"{fb[0] / lfb[0]:.2f} |")
+            f"{fb[0] / lfb[0]:.2f} | {tf[0]:.2f} ({tf[1]:.2f}) | {f[0] / tf[0]:.2f} "
+            f"({f[1] / tf[1]:.2f}) |")
         print(f"| {size}x{size} | {scene.means.shape[1]:,} | {pairs:,} | {f[0]:.1f} ({f[1]:.1f}) "
               f"| {fb[0]:.1f} ({fb[1]:.1f}) | {cold:.0f} | {peak:.0f} | {dense_cols[0]} | "
               f"{dense_cols[1]} | {goal} |", flush=True)
@@ -335,10 +339,13 @@ def main() -> None:
           f"the forward's per-pair arithmetic, no memory traffic, ceil(evaluations / lanes) "
           f"iterations; evaluations = pairs x tile pixels), medians of the same interleaved "
           f"runs; the Dr.Jit target {target_text}. Backward with the ten scalar scatter-adds "
-          f"(\"lanes\") against the packet record (the LLVM default)\n")
+          f"(\"lanes\") against the packet record (the LLVM default); the forward replayed "
+          f"(freeze_forward, the LLVM default for calls without gradients) against the forward "
+          f"traced at every call\n")
     print("| image | evaluations | reference ms (CPU ms) | K fwd / fwd+bwd | K target | "
-          "launches fwd / fwd+bwd | fwd+bwd with lanes ms (CPU ms) | packet / lanes |")
-    print("|---|---|---|---|---|---|---|---|")
+          "launches fwd / fwd+bwd | fwd+bwd with lanes ms (CPU ms) | packet / lanes | "
+          "traced fwd ms (CPU ms) | replayed / traced wall (CPU) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(floor_rows))
     print("\nThe torch bridge: medians of the same interleaved runs, torch `rasterize` against the "
           "Dr.Jit entry `rasterize_drjit` (target: <= 1 ms overhead), and the torch entry's "

@@ -28,13 +28,21 @@ MAX_CULL_CONDITION = 1.0e3
 class Bins:
     """Per-tile lists. ``pair_gid`` (``UInt32``, one lane per (tile, Gaussian) pair, tile-major,
     depth order within a tile): Gaussian index. ``tile_start``, ``tile_end`` (``UInt32``, one lane
-    per tile of every image): the range of each tile in ``pair_gid``. ``num_pairs`` (``int``).
+    per tile of every image): the range of each tile in ``pair_gid``. ``num_pairs`` (``int``, or
+    ``None`` with a fixed capacity, which reads nothing back). With a fixed capacity,
+    ``overflow`` (``Bool``, one lane): the scene needed more pair lanes than the capacity;
+    ``needed`` (``UInt32``, one lane): how many it needed; ``kept`` (``UInt32``, one lane): the
+    pairs in tile ranges (``num_pairs`` without the host read). Without a capacity, ``needed`` is
+    the number of candidate pairs (``int``) and the other two are ``None``.
     """
 
     pair_gid: object
     tile_start: object
     tile_end: object
-    num_pairs: int
+    num_pairs: int | None
+    overflow: object = None
+    needed: object = None
+    kept: object = None
 
 
 def tile_rects(p: Projected, tile_size: int, opacity_cull: bool, width, height, grid_x, grid_y):
@@ -140,7 +148,7 @@ def stable_bucket_order(bucket, size: int, buckets: int):
 
 
 def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, tile_base,
-                  grid_x, num_tiles: int) -> Bins:
+                  grid_x, num_tiles: int, capacity: int | None = None) -> Bins:
     """Expand Gaussians into (tile, Gaussian) pairs and sort them by tile, then depth.
 
     Parameter ``p`` (``Projected``): centres and conics (read detached) and depth (sort key).
@@ -152,7 +160,17 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     pixel samples (exact test of a convex quadratic over a box); the others would be skipped at
     every pixel of the tile by the reference's ``alpha < 1/255`` rule. Two host reads (numbers
     of candidate and kept pairs, to size the pair arrays).
+
+    Parameter ``capacity`` (``int`` or ``None``): with a number, the pair arrays have that many
+    lanes whatever the scene needs and nothing is read back to the host (so the whole render can
+    be recorded by ``dr.freeze``): lanes past the scene's candidate pairs are masked, dropped pairs
+    stay at the end of ``pair_gid`` (no tile range reaches them), and ``Bins.overflow`` (``Bool``,
+    one lane) is true when the scene needed more candidate lanes than ``capacity`` (its images
+    then miss pairs: render again with ``Bins.needed``, ``UInt32``, one lane, or more).
     """
+    if capacity is not None:
+        return _bin_fixed(p, x0, x1, y0, y1, count, q_max, tile_size, tile_base, grid_x,
+                          num_tiles, capacity)
     UInt32 = type(count)
     n = dr.width(count)
     # ---- Global depth order (stable radix sort; culled Gaussians have count 0) ----
@@ -164,17 +182,41 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     tile_count = dr.zeros(UInt32, num_tiles)
     if num_pairs == 0:
         return Bins(pair_gid=dr.zeros(UInt32, 1), tile_start=tile_count, tile_end=tile_count,
-                    num_pairs=0)
+                    num_pairs=0, needed=0)
     begin = end - count_sorted
+    gid, tile, keep = _pairs(p, perm, begin, count_sorted, num_pairs, x0, x1, y0, q_max,
+                             tile_size, tile_base, grid_x)
 
+    # ---- Stable bucket sort by tile keeps the depth order within each tile; dropped pairs go
+    # to one bucket behind all tiles ----
+    bucket = dr.select(keep, tile, num_tiles)
+    dr.eval(bucket, gid)  # one pair-generation kernel for both consumers below
+    perm_tile, tile_start, tile_end = _sort_by_tile(bucket, num_pairs, num_tiles)
+    num_kept = int(tile_end[num_tiles - 1])
+    if num_kept == 0:
+        return Bins(pair_gid=dr.zeros(UInt32, 1), tile_start=tile_start, tile_end=tile_end,
+                    num_pairs=0, needed=num_pairs)
+    kept = dr.gather(UInt32, perm_tile, dr.arange(UInt32, num_kept))
+    pair_gid = dr.gather(UInt32, gid, kept)
+    return Bins(pair_gid=pair_gid, tile_start=tile_start, tile_end=tile_end, num_pairs=num_kept,
+                needed=num_pairs)
+
+
+def _pairs(p: Projected, perm, begin, count_sorted, size: int, x0, x1, y0, q_max,
+           tile_size: int, tile_base, grid_x):
+    """Gaussian index, tile and keep flag of ``size`` pair lanes (Gaussians in depth order
+    ``perm``, each owning ``count_sorted`` lanes from ``begin``; a Gaussian whose first lane is
+    at or past ``size`` owns none)."""
+    UInt32 = type(begin)
+    n = dr.width(begin)
     # ---- Pair owners: scatter each Gaussian's sorted position at its first pair, max-scan ----
-    owner = dr.zeros(UInt32, num_pairs)
+    owner = dr.zeros(UInt32, size)
     dr.scatter(owner, dr.arange(UInt32, n), begin, active=count_sorted > 0)
     owner = dr.prefix_reduce(dr.ReduceOp.Max, owner, exclusive=False)
     gid = dr.gather(UInt32, perm, owner)
 
     # ---- Tile of each pair (row-major within the Gaussian's rectangle) ----
-    k = dr.arange(UInt32, num_pairs) - dr.gather(UInt32, begin, owner)
+    k = dr.arange(UInt32, size) - dr.gather(UInt32, begin, owner)
     gx0 = dr.gather(UInt32, x0, gid)
     gy0 = dr.gather(UInt32, y0, gid)
     # Guarded divisor: masked tail lanes of a packet may read 0 and trap
@@ -202,22 +244,41 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     span = float(tile_size - 1)
     q_min = _min_quadratic_over_box(ca, cb, cc, u - first_x - span, u - first_x,
                                     v - first_y - span, v - first_y)
-    keep = q_min <= q_bound
+    return gid, tile, q_min <= q_bound
 
-    # ---- Stable bucket sort by tile keeps the depth order within each tile; dropped pairs go
-    # to one bucket behind all tiles ----
-    bucket = dr.select(keep, tile, num_tiles)
-    dr.eval(bucket, gid)  # one pair-generation kernel for both consumers below
+
+def _sort_by_tile(bucket, size: int, num_tiles: int):
+    """Stable order of ``size`` pair lanes by ``bucket`` (tile, or ``num_tiles`` for a dropped
+    pair) and each tile's range ``[tile_start, tile_end)`` in that order."""
+    UInt32 = type(bucket)
     buckets = 1 << num_tiles.bit_length()  # a power of two > num_tiles
-    perm_tile = stable_bucket_order(bucket, num_pairs, buckets)
+    perm_tile = stable_bucket_order(bucket, size, buckets)
+    tile_count = dr.zeros(UInt32, num_tiles)
     dr.scatter_reduce(dr.ReduceOp.Add, tile_count, UInt32(1), bucket, active=bucket < num_tiles,
                       mode=dr.ReduceMode.Direct)
     tile_end = dr.prefix_reduce(dr.ReduceOp.Add, tile_count, exclusive=False)
-    tile_start = tile_end - tile_count
-    num_kept = int(tile_end[num_tiles - 1])
-    if num_kept == 0:
-        return Bins(pair_gid=dr.zeros(UInt32, 1), tile_start=tile_start, tile_end=tile_end,
-                    num_pairs=0)
-    kept = dr.gather(UInt32, perm_tile, dr.arange(UInt32, num_kept))
-    pair_gid = dr.gather(UInt32, gid, kept)
-    return Bins(pair_gid=pair_gid, tile_start=tile_start, tile_end=tile_end, num_pairs=num_kept)
+    return perm_tile, tile_end - tile_count, tile_end
+
+
+def _bin_fixed(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, tile_base, grid_x,
+               num_tiles: int, capacity: int) -> Bins:
+    """``bin_gaussians`` with ``capacity`` pair lanes and no host read (see there)."""
+    UInt32 = type(count)
+    perm = dr.argsort(dr.select(count > 0, dr.detach(p.z), dr.inf))
+    count_sorted = dr.gather(UInt32, count, perm)
+    end = dr.prefix_reduce(dr.ReduceOp.Add, count_sorted, exclusive=False)
+    begin = end - count_sorted
+    needed = dr.gather(UInt32, end, dr.opaque(UInt32, dr.width(end) - 1))  # one lane
+    # A Gaussian owns the lanes [begin, end) that fit; one starting past the capacity owns none.
+    fits = count_sorted > 0
+    fits &= begin < capacity
+    gid, tile, keep = _pairs(p, perm, begin, dr.select(fits, count_sorted, 0), capacity, x0, x1,
+                             y0, q_max, tile_size, tile_base, grid_x)
+    keep &= dr.arange(UInt32, capacity) < needed  # lanes past the scene's pairs
+    bucket = dr.select(keep, tile, num_tiles)
+    dr.eval(bucket, gid)
+    perm_tile, tile_start, tile_end = _sort_by_tile(bucket, capacity, num_tiles)
+    kept = dr.gather(UInt32, tile_end, dr.opaque(UInt32, num_tiles - 1))
+    return Bins(pair_gid=dr.gather(UInt32, gid, perm_tile), tile_start=tile_start,
+                tile_end=tile_end, num_pairs=None, overflow=needed > capacity, needed=needed,
+                kept=kept)

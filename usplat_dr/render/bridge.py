@@ -16,6 +16,7 @@ from torch import Tensor
 
 from usplat_dr import _threads
 from usplat_dr.backend import require_cuda, require_llvm
+from usplat_dr.render.frozen import FrozenForward
 from usplat_dr.render.pipeline import check_shapes, rasterize_drjit
 from usplat_dr.render.settings import RasterSettings
 
@@ -100,9 +101,17 @@ def _wrapped(image_shape: tuple[int, int], settings: RasterSettings):
     arguments as PyTrees (a dataclass would be rebuilt with gradient values).
     """
 
+    frozen = FrozenForward(image_shape, settings)
+
     @dr.wrap(source="torch", target="drjit")
     def render(extrinsics, intrinsics, near, far, background_color, means, covariances,
                sh_coefficients, opacities):
+        args = (extrinsics, intrinsics, near, far, background_color, means, covariances,
+                sh_coefficients, opacities)
+        is_cuda = dr.backend_v(means.array) == dr.JitBackend.CUDA
+        if (settings.resolved_freeze_forward(is_cuda)
+                and not any(dr.grad_enabled(t) for t in args[5:])):
+            return frozen(*args)
         out = rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_color,
                               means, covariances, sh_coefficients, opacities, settings,
                               check=False)

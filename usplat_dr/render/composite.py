@@ -113,7 +113,12 @@ class Composite(dr.CustomOp):
                   dr.reinterpret_array(Float, dr.arange(UInt32, dr.width(u)))]
         fields += [zero] * (RECORD - len(fields))
         per_gaussian = dr.ravel(ArrayXf(fields))
-        self.records = dr.ravel(dr.gather(ArrayXf, per_gaussian, gid, shape=(RECORD, 1)))
+        if bins.num_pairs is None:  # fixed capacity: only lanes before the last tile's end
+            used = dr.arange(UInt32, dr.width(gid)) < bins.kept
+            rec = dr.gather(ArrayXf, per_gaussian, gid, active=used, shape=(RECORD, 1))
+        else:
+            rec = dr.gather(ArrayXf, per_gaussian, gid, shape=(RECORD, 1))
+        self.records = dr.ravel(rec)
 
         start = dr.gather(UInt32, bins.tile_start, lanes.tile)
         end = dr.gather(UInt32, bins.tile_end, lanes.tile)

@@ -23,7 +23,9 @@ class RenderOutputDr:
     """``color`` (``TensorXf`` [B, 3, H, W]), ``alpha`` (``TensorXf`` [B, H, W], 1 - final
     transmittance), ``depth`` (``TensorXf`` [B, H, W], sum of compositing weight x camera-space z
     of each Gaussian's centre; not divided by alpha; 0 on background). ``aux``: debug values
-    (``num_pairs``, ``tile_size``, ``radii`` as ``Float`` per Gaussian, 0 where culled)."""
+    (``num_pairs``, ``tile_size``, ``radii`` as ``Float`` per Gaussian, 0 where culled; with a
+    ``pair_capacity``, ``num_pairs`` is ``None`` and ``overflow``, ``pairs_needed`` and
+    ``pairs_kept`` are one-lane arrays, see ``binning.Bins``)."""
 
     color: object
     alpha: object
@@ -189,7 +191,8 @@ def pixel_lanes(mod, num_images: int, height: int, width: int, tile_size: int) -
 
 def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_color, means,
                     covariances, sh_coefficients, opacities,
-                    settings: RasterSettings | None = None, check: bool = True) -> RenderOutputDr:
+                    settings: RasterSettings | None = None, check: bool = True,
+                    pair_capacity: int | None = None) -> RenderOutputDr:
     """Render 3D Gaussians with the 3DGS CUDA rasteriser's rules, on Dr.Jit tensors.
 
     Arguments follow pixelSplat/MVSplat's ``render_cuda``, as ``TensorXf`` of one backend:
@@ -287,7 +290,8 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
     tiles_per_image = grid_x * grid_y
     bins = bin_gaussians(proj, x0, x1, y0, y1, count, q_max, tile_size,
                          batch * dr.opaque(UInt32, tiles_per_image),
-                         dr.opaque(UInt32, grid_x), num_images * tiles_per_image)
+                         dr.opaque(UInt32, grid_x), num_images * tiles_per_image,
+                         capacity=pair_capacity)
 
     # ---- Compositing (custom backward) ----
     lanes = pixel_lanes(mod, num_images, height, width, tile_size)
@@ -300,5 +304,6 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
         alpha=TensorXf(alpha, shape=(num_images, height, width)),
         depth=TensorXf(depth, shape=(num_images, height, width)),
         aux={"num_pairs": bins.num_pairs, "tile_size": tile_size,
-             "radii": dr.select(proj.valid, proj.radius, 0.0)})
+             "radii": dr.select(proj.valid, proj.radius, 0.0), "overflow": bins.overflow,
+             "pairs_needed": bins.needed, "pairs_kept": bins.kept})
 
