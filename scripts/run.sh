@@ -12,6 +12,10 @@
 #   bash scripts/run.sh gpu-check [D]  on a CUDA machine: the CUDA tests, the rasteriser and
 #                                      UniqueSplat benchmarks on the GPU, a report in
 #                                      D (default outputs/gpu_check/; wheels it lacks: .whl/)
+#   bash scripts/run.sh gpu-train OUT [SECONDS] [STEPS]  on a CUDA machine: (a) fine-tuned one
+#                                      octave up (256x256) from sets packed in .gpudata256/
+#                                      (train/studies/gpu_train.sh), scored against the
+#                                      half-size model upsampled; results in OUT
 #
 # Each command first installs what it needs, once: Debian's libllvm19 when no libLLVM >= 19 is
 # present (Dr.Jit's CPU backend; 15 and 16 crash it), a virtual environment in .venv (or
@@ -99,9 +103,8 @@ setup() { ensure_python; ensure_libllvm; ensure_venv; }
 # A GPU machine may have no network: it uses the Python that has a CUDA torch (none is
 # installed), adds the wheels found in .whl/ (drjit's, jaxtyping's, ...: pip download them
 # where there is a network) to a private site folder, and leaves everything else alone.
-gpu_check() {
-    local out=${1:-$ROOT/outputs/gpu_check} site=/tmp/usplat-gpu-site
-    mkdir -p "$out"
+gpu_env() {
+    local site=/tmp/usplat-gpu-site
     if ls "$ROOT"/.whl/*.whl >/dev/null 2>&1; then
         say "installing the wheels in .whl/ into $site"
         "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
@@ -109,13 +112,19 @@ gpu_check() {
     fi
     export PYTHONPATH="$site:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
     if ! "$PYTHON" -c 'import torch, sys; sys.exit(not torch.cuda.is_available())'; then
-        say "torch sees no CUDA GPU here: gpu-check needs a CUDA machine with torch installed"
+        say "torch sees no CUDA GPU here: $command needs a CUDA machine with torch installed"
         exit 1
     fi
     if ! "$PYTHON" -c 'import usplat_dr, drjit as dr, sys; sys.exit(not dr.has_backend(dr.JitBackend.CUDA))'; then
         say "Dr.Jit's CUDA backend is unavailable: put a drjit wheel for this Python in .whl/"
         exit 1
     fi
+}
+
+gpu_check() {
+    local out=${1:-$ROOT/outputs/gpu_check}
+    mkdir -p "$out"
+    gpu_env
     {
         echo "# usplat-dr GPU check, $(date -u +%Y-%m-%dT%H:%MZ)"
         echo
@@ -157,5 +166,6 @@ case "$command" in
     doctor) setup; exec "$VENV/bin/usplat" doctor ;;
     bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench/rasterizer.py "$@" ;;
     gpu-check) cd "$ROOT"; gpu_check "$@" ;;
-    *) sed -n '2,18p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+    gpu-train) cd "$ROOT"; gpu_env; exec bash train/studies/gpu_train.sh "$@" ;;
+    *) sed -n '2,22p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

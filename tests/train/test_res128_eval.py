@@ -84,3 +84,21 @@ def test_a_model_against_itself_reads_zero_at_the_small_size(tmp_path, protocol_
         scores.append(-10 * np.log10(np.mean((up - gt[t]) ** 2)))
     # float32 renders and upsampling against float64: far below 1e-3 dB
     assert abs(float(rows[0]["psnr_64_up"]) - np.mean(scores)) < 1e-3
+
+
+@pytest.mark.slow
+def test_one_octave_up_names_its_columns_by_size(tmp_path, protocol_set):
+    # --size 32 on the 32x32 set: the same comparison at 32 and 16 (as gpu-train runs it at
+    # 256 and 128), each key named by its size
+    out = tmp_path / "out"
+    assert study.main(["--model-large", "tiny_baseline", "--model-small", "tiny_baseline",
+                       "--size", "32", "--data", str(protocol_set), "--images", "0",
+                       "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["size"] == 32 and summary["model32"] == "tiny_baseline"
+    assert {"psnr_32", "psnr_16_up", "psnr_32_at16", "abs_rel_16"} <= set(summary["means"])
+    assert summary["at16"]["psnr"]["mean"] == 0  # the same model at the small size
+    header = (out / "per_scene.csv").read_text().splitlines()[0].split(",")
+    assert "psnr_16_up" in header and not any("128" in h or "64" in h for h in header)
+    with pytest.raises(SystemExit):
+        study.main(["--model-large", "x", "--size", "33", "--data", "d", "--out", str(out)])

@@ -8,12 +8,17 @@ resizing costs). Paired differences with 95% t intervals over scenes.
     python train/studies/res128_eval.py --model128 step_0002000.ckpt \\
         --model64 tiny_baseline --data outputs/big128/test5000 --out outputs/res128_eval
 
+``--size 256`` makes the same comparison one octave up (a 256x256 model against a 128x128 one
+upsampled; the columns are then named ``psnr_256``, ``psnr_128_up``, ...), ``--device cuda``
+runs both models on a GPU (scripts/run.sh gpu-train).
+
 Writes ``OUT/per_scene.csv``, ``OUT/summary.json`` and ``OUT/comparison.png`` (ground truth,
-the 128x128 model, the 64x64 model upsampled, for the first scenes).
+the large model, the small model upsampled, for the first scenes).
 """
 
 import argparse
 import csv
+import re
 import sys
 from pathlib import Path
 
@@ -51,34 +56,43 @@ def examples(dataset: dict, index: str):
         yield default_collate([example])
 
 
-def render(model, batch) -> tuple[torch.Tensor, float]:
-    """One scene's target renders [T, 3, H, W] and mean AbsRel over its targets."""
+def render(model, batch, device: str = "cpu") -> tuple[torch.Tensor, float]:
+    """One scene's target renders [T, 3, H, W] (on the CPU) and mean AbsRel over its targets."""
     with torch.no_grad():
-        result = model(*model_inputs(batch, "cpu"))
+        result = model(*model_inputs(batch, device))
+    depth, alpha = result.depth.cpu(), result.alpha.cpu()
     gt_depth = batch["target"].get("depth")
     rel = float("nan")
     if gt_depth is not None:
-        rel = nan_mean([depth_metrics(result.depth[0, j], result.alpha[0, j],
-                                      gt_depth[0, j])["abs_rel"]
-                        for j in range(result.color.shape[1])])
-    return result.color[0].clamp(0, 1), rel
+        rel = nan_mean([depth_metrics(depth[0, j], alpha[0, j], gt_depth[0, j])["abs_rel"]
+                        for j in range(depth.shape[1])])
+    return result.color[0].clamp(0, 1).cpu(), rel
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model128", required=True, help="the 128x128 model (checkpoint or name)")
-    p.add_argument("--model64", default="tiny_baseline", help="the 64x64 model")
-    p.add_argument("--data", required=True, help="a usplat synth test root at 128x128")
+    p.add_argument("--model128", "--model-large", dest="model128", required=True,
+                   help="the model of --size (checkpoint or name)")
+    p.add_argument("--model64", "--model-small", dest="model64", default="tiny_baseline",
+                   help="the model of half --size")
+    p.add_argument("--size", type=int, default=128,
+                   help="the large model's image size (the small one's is half)")
+    p.add_argument("--device", default="cpu", help="cpu, or cuda for a GPU")
+    p.add_argument("--data", required=True, help="a usplat synth test root at --size")
     p.add_argument("--scenes", type=int, default=None, help="the first N scenes (default all)")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--images", type=int, default=4, help="scenes shown in comparison.png")
     p.add_argument("--out", required=True, type=Path, help="folder for the results")
     args = p.parse_args(argv)
+    if args.size < 8 or args.size % 2:
+        p.error(f"--size must be an even number of pixels >= 8, got {args.size}")
     torch.set_num_threads(args.threads)
-    big, small = load(args.model128).eval(), load(args.model64).eval()
-    set128, index, scenes = held_out_scenes(args.data, "standard", args.scenes, size=128)
-    set64 = {**set128, "image_shape": [64, 64]}
+    hi, lo = args.size, args.size // 2
+    big = load(args.model128, device=args.device).eval()
+    small = load(args.model64, device=args.device).eval()
+    set128, index, scenes = held_out_scenes(args.data, "standard", args.scenes, size=hi)
+    set64 = {**set128, "image_shape": [lo, lo]}
     rows, shown = [], []
     # one pass over the chunks at each size (the same scenes, in the same order)
     for k, (b128, b64) in enumerate(zip(examples(set128, index), examples(set64, index))):
@@ -87,10 +101,10 @@ def main(argv=None) -> int:
         scene = b128["scene"][0]
         assert b64["scene"][0] == scene and scene == scenes[k], (scene, scenes[k])
         gt128, gt64 = b128["target"]["image"][0], b64["target"]["image"][0]
-        pred128, rel128 = render(big, b128)
-        pred64, rel64 = render(small, b64)
+        pred128, rel128 = render(big, b128, args.device)
+        pred64, rel64 = render(small, b64, args.device)
         up = upsample(pred64, 2)
-        big_at64, rel_big64 = render(big, b64)
+        big_at64, rel_big64 = render(big, b64, args.device)
         rows.append({
             "scene": scene,
             "psnr_128": psnr(pred128, gt128).mean().item(),
@@ -105,13 +119,13 @@ def main(argv=None) -> int:
             "abs_rel_128_at64": rel_big64})
         if k < args.images:
             shown.append(torch.cat([gt128[0], pred128[0], up[0]], dim=-1))
-        print(f"{k + 1}/{len(scenes)} {scene}: 128 {rows[-1]['psnr_128']:.2f} dB, "
-              f"64 upsampled {rows[-1]['psnr_64_up']:.2f} dB", flush=True)
+        print(f"{k + 1}/{len(scenes)} {scene}: {hi} {rows[-1]['psnr_128']:.2f} dB, "
+              f"{lo} upsampled {rows[-1]['psnr_64_up']:.2f} dB", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     with atomic_open(args.out / "per_scene.csv", "w") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w = csv.DictWriter(f, fieldnames=list(_named(rows[0], hi)))
         w.writeheader()
-        w.writerows(rows)
+        w.writerows(_named(r, hi) for r in rows)
     col = {key: np.array([r[key] for r in rows]) for key in rows[0] if key != "scene"}
 
     def paired(a: str, b: str) -> dict:
@@ -131,25 +145,37 @@ def main(argv=None) -> int:
                  "abs_rel": paired("abs_rel_128_at64", "abs_rel_64")}}
     gain = summary["at128"]
     summary["success"] = bool(gain["psnr"]["mean"] >= MARGIN_DB and gain["ssim"]["mean"] > 0)
-    write_json(args.out / "summary.json", summary)
+    summary["size"] = hi
+    write_json(args.out / "summary.json", _named(summary, hi))
     if shown:
         from PIL import Image
         grid = torch.cat(shown, dim=-2).permute(1, 2, 0).mul(255).round().byte().numpy()
         Image.fromarray(grid).save(args.out / "comparison.png")  # rows: GT | 128 | 64 up
     m = summary["means"]
-    print(f"at 128x128 over {len(rows)} scenes: 128 model {m['psnr_128']:.3f} dB / SSIM "
-          f"{m['ssim_128']:.4f} / AbsRel {m['abs_rel_128']:.4f}; 64 model upsampled "
-          f"{m['psnr_64_up']:.3f} dB / {m['ssim_64_up']:.4f} (its AbsRel at 64: "
+    print(f"at {hi}x{hi} over {len(rows)} scenes: {hi} model {m['psnr_128']:.3f} dB / SSIM "
+          f"{m['ssim_128']:.4f} / AbsRel {m['abs_rel_128']:.4f}; {lo} model upsampled "
+          f"{m['psnr_64_up']:.3f} dB / {m['ssim_64_up']:.4f} (its AbsRel at {lo}: "
           f"{m['abs_rel_64']:.4f})")
-    for where in ("at128", "at64"):
+    for where, size in (("at128", hi), ("at64", lo)):
         s = summary[where]
-        print(f"{where}: PSNR {s['psnr']['mean']:+.3f} [{s['psnr']['low']:+.3f}, "
+        print(f"at {size}: PSNR {s['psnr']['mean']:+.3f} [{s['psnr']['low']:+.3f}, "
               f"{s['psnr']['high']:+.3f}] dB, SSIM {s['ssim']['mean']:+.4f} "
               f"[{s['ssim']['low']:+.4f}, {s['ssim']['high']:+.4f}], AbsRel "
               f"{s['abs_rel']['mean']:+.4f} [{s['abs_rel']['low']:+.4f}, "
               f"{s['abs_rel']['high']:+.4f}]")
-    print(f"success (>= +{MARGIN_DB} dB and higher SSIM at 128x128): {summary['success']}")
+    print(f"success (>= +{MARGIN_DB} dB and higher SSIM at {hi}x{hi}): {summary['success']}")
     return 0
+
+
+def _named(obj, size: int):
+    """``obj`` (a dict, nested) with the keys' sizes for a comparison at ``size``: the code
+    names the large size 128 and the small 64 (the registered test's own names, kept as they
+    are at 128); at 256 a key ``psnr_64_up`` becomes ``psnr_128_up``."""
+    names = {"128": str(size), "64": str(size // 2)}
+    if isinstance(obj, dict):
+        return {re.sub(r"128|64", lambda m: names[m.group()], k): _named(v, size)
+                for k, v in obj.items()}
+    return obj
 
 
 if __name__ == "__main__":
