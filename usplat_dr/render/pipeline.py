@@ -205,7 +205,10 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
 
     Differentiable (Dr.Jit AD) with respect to means, covariances, SH coefficients and
     opacities; cameras get no gradient. ``check=False`` skips the value checks (NaN/Inf,
-    near/far), which read values back to the host.
+    near/far), which read values back to the host. ``pair_capacity`` (``int``): bin into that
+    many (tile, Gaussian) pair lanes and read nothing back (with ``check=False``), so that
+    ``dr.freeze`` can record the call; ``aux["overflow"]`` then says whether the scene needed
+    more (its images miss pairs; ``aux["pairs_needed"]`` is how many), ``render.frozen``.
 
     Examples:
         >>> import drjit as dr, usplat_dr
@@ -221,6 +224,12 @@ def rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_c
         ((1, 3, 8, 8), 0.52)
     """
     settings = settings or RasterSettings()
+    if pair_capacity is not None and (isinstance(pair_capacity, bool)
+                                      or not isinstance(pair_capacity, int)
+                                      or not 0 < pair_capacity < 2 ** 24):
+        # below 2^24: the pair kernel's float row division is exact up to there (binning.py)
+        raise ValueError(f"pair_capacity must be None or an int in [1, 2^24), got "
+                         f"{pair_capacity!r}")
     if check:
         num_images, g, d = check_inputs(extrinsics, intrinsics, near, far, image_shape,
                                         background_color, means, covariances, sh_coefficients,
