@@ -113,9 +113,9 @@ def test_frozen_forward_grows_its_capacity_when_a_scene_needs_more_pairs():
     small = _tensors(isotropic_scene(400, 24, seed=0))
     frozen(*small[:4], *small[5:])
     key = next(iter(frozen.capacity))
-    # a scene of the same shapes with four times the footprint per Gaussian needs more lanes
+    # a scene of the same shapes with ten times the radius per Gaussian needs more lanes
     big_scene = isotropic_scene(400, 24, seed=0)
-    big_scene.covariances = big_scene.covariances * 16.0
+    big_scene.covariances = big_scene.covariances * 100.0
     big = _tensors(big_scene)
     needed = rasterize_drjit(*big).aux["pairs_needed"]
     assert needed > frozen.capacity[key]
