@@ -286,6 +286,14 @@ def main() -> None:
                                       pairs * tile * tile)
         _, lanes_fwd_bwd = make_fns(scene, RasterSettings(backward_scatter="lanes"))
         traced_fwd, _ = make_fns(scene, RasterSettings(freeze_forward=False))
+        # the recorded forward explicitly (the CPU's default; off by default on CUDA, where it
+        # is measured here first: a failure is printed in its column, not raised)
+        frozen_fwd, _ = make_fns(scene, RasterSettings(freeze_forward=True))
+        frozen_error = None
+        try:
+            frozen_fwd()
+        except Exception as e:  # noqa: BLE001 (reported in the table)
+            frozen_error = f"failed: {type(e).__name__}: {str(e)[:80]}"
         for _ in range(2):
             reference()
             lanes_fwd_bwd()
@@ -293,6 +301,9 @@ def main() -> None:
         fns = {"fwd": fwd, "fwd_bwd": fwd_bwd, "native_fwd": n_fwd, "native_fwd_bwd": n_fwd_bwd,
                "reference": reference, "lanes_fwd_bwd": lanes_fwd_bwd, "traced_fwd": traced_fwd,
                **make_check_fns(scene)}
+        if frozen_error is None:
+            frozen_fwd()  # the recording (the first call above was traced)
+            fns["frozen_fwd"] = frozen_fwd
         dense = size <= args.dense_max
         if dense:
             d_fwd, d_fwd_bwd = make_fns(scene, None, render_ref)
@@ -324,8 +335,11 @@ def main() -> None:
             f"{f[0] / ref[0]:.1f} / {fb[0] / ref[0]:.1f} | "
             + (f"{k_goal[0]:g} / {k_goal[1]:g}" if k_goal else "-")
             + f" | {launches(fwd)} / {launches(fwd_bwd)} | {lfb[0]:.1f} ({lfb[1]:.1f}) | "
-            f"{fb[0] / lfb[0]:.2f} | {tf[0]:.2f} ({tf[1]:.2f}) | {f[0] / tf[0]:.2f} "
-            f"({f[1] / tf[1]:.2f}) |")
+            f"{fb[0] / lfb[0]:.2f} | {tf[0]:.2f} ({tf[1]:.2f}) | "
+            + (frozen_error or f"{t['frozen_fwd'][0] / tf[0]:.2f} "
+                               f"({t['frozen_fwd'][1] / tf[1]:.2f})")
+            + f" | {launches(traced_fwd)} / "
+            + ("-" if frozen_error else str(launches(frozen_fwd))) + " |")
         print(f"| {size}x{size} | {scene.means.shape[1]:,} | {pairs:,} | {f[0]:.1f} ({f[1]:.1f}) "
               f"| {fb[0]:.1f} ({fb[1]:.1f}) | {cold:.0f} | {peak:.0f} | {dense_cols[0]} | "
               f"{dense_cols[1]} | {goal} |", flush=True)
@@ -340,12 +354,13 @@ def main() -> None:
           f"iterations; evaluations = pairs x tile pixels), medians of the same interleaved "
           f"runs; the Dr.Jit target {target_text}. Backward with the ten scalar scatter-adds "
           f"(\"lanes\") against the packet record (the LLVM default); the forward replayed "
-          f"(freeze_forward, the LLVM default for calls without gradients) against the forward "
-          f"traced at every call\n")
+          f"(RasterSettings(freeze_forward=True), the LLVM default for calls without gradients) "
+          f"against the forward traced at every call, and their launches\n")
     print("| image | evaluations | reference ms (CPU ms) | K fwd / fwd+bwd | K target | "
           "launches fwd / fwd+bwd | fwd+bwd with lanes ms (CPU ms) | packet / lanes | "
-          "traced fwd ms (CPU ms) | replayed / traced wall (CPU) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "traced fwd ms (CPU ms) | replayed / traced wall (CPU) | launches traced / "
+          "replayed |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(floor_rows))
     print("\nThe torch bridge: medians of the same interleaved runs, torch `rasterize` against the "
           "Dr.Jit entry `rasterize_drjit` (target: <= 1 ms overhead), and the torch entry's "
