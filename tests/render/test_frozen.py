@@ -124,6 +124,20 @@ def test_frozen_forward_grows_its_capacity_when_a_scene_needs_more_pairs():
     assert frozen.capacity[key] >= needed
 
 
+def test_frozen_forward_traces_every_call_once_it_has_recorded_too_often(monkeypatch):
+    from usplat_dr.render import frozen as module
+
+    monkeypatch.setattr(module, "MAX_TOTAL_RECORDINGS", 2)
+    frozen = FrozenForward((16, 16))
+    for n in (30, 40, 50, 30, 40, 50):  # three shapes: two recorded, then traced
+        t = _tensors(isotropic_scene(n, 16, seed=n))
+        for _ in range(2):
+            out = frozen(*t[:4], *t[5:])
+            _assert_same([torch.from_numpy(x.numpy()) for x in out[:3]],
+                         _images(rasterize_drjit(*t)))
+    assert frozen.recordings == 2 and frozen.gave_up
+
+
 def test_frozen_forward_refuses_gradients_and_empty_scenes():
     t = _tensors(isotropic_scene(50, 16, seed=0))
     frozen = FrozenForward((16, 16))
@@ -138,9 +152,8 @@ def test_frozen_forward_refuses_gradients_and_empty_scenes():
 
 
 def test_the_torch_entry_without_gradients_equals_the_traced_forward():
-    settings_frozen, settings_traced = RasterSettings(), RasterSettings(freeze_forward=False)
-    assert settings_frozen.resolved_freeze_forward(is_cuda=False)
-    assert not settings_frozen.resolved_freeze_forward(is_cuda=True)
+    settings_frozen, settings_traced = RasterSettings(freeze_forward=True), RasterSettings()
+    assert not settings_traced.freeze_forward  # opt-in
     for seed in (0, 1, 2):  # traced, recorded, replayed
         scene = random_scene(200, 20, 20, batch=2, seed=seed)
         with torch.no_grad():

@@ -286,8 +286,8 @@ def main() -> None:
                                       pairs * tile * tile)
         _, lanes_fwd_bwd = make_fns(scene, RasterSettings(backward_scatter="lanes"))
         traced_fwd, _ = make_fns(scene, RasterSettings(freeze_forward=False))
-        # the recorded forward explicitly (the CPU's default; off by default on CUDA, where it
-        # is measured here first: a failure is printed in its column, not raised)
+        # the recorded forward (opt-in), on CUDA too, where it is measured here first: a
+        # failure is printed in its column, not raised
         frozen_fwd, _ = make_fns(scene, RasterSettings(freeze_forward=True))
         frozen_error = None
         try:
@@ -354,7 +354,7 @@ def main() -> None:
           f"iterations; evaluations = pairs x tile pixels), medians of the same interleaved "
           f"runs; the Dr.Jit target {target_text}. Backward with the ten scalar scatter-adds "
           f"(\"lanes\") against the packet record (the LLVM default); the forward replayed "
-          f"(RasterSettings(freeze_forward=True), the LLVM default for calls without gradients) "
+          f"(RasterSettings(freeze_forward=True), opt-in, for calls without gradients) "
           f"against the forward traced at every call, and their launches\n")
     print("| image | evaluations | reference ms (CPU ms) | K fwd / fwd+bwd | K target | "
           "launches fwd / fwd+bwd | fwd+bwd with lanes ms (CPU ms) | packet / lanes | "

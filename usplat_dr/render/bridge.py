@@ -108,9 +108,7 @@ def _wrapped(image_shape: tuple[int, int], settings: RasterSettings):
                sh_coefficients, opacities):
         args = (extrinsics, intrinsics, near, far, background_color, means, covariances,
                 sh_coefficients, opacities)
-        is_cuda = dr.backend_v(means.array) == dr.JitBackend.CUDA
-        if (settings.resolved_freeze_forward(is_cuda)
-                and not any(dr.grad_enabled(t) for t in args[5:])):
+        if settings.freeze_forward and not any(dr.grad_enabled(t) for t in args[5:]):
             return frozen(*args)
         out = rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_color,
                               means, covariances, sh_coefficients, opacities, settings,

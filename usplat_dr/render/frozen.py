@@ -10,18 +10,31 @@ After each replay two numbers come back to the host (pairs needed and kept); whe
 needed more lanes than the capacity, the capacity grows to fit and the call is made again, so
 the images are always the traced ones, bit for bit.
 
+Opt-in (``RasterSettings(freeze_forward=True)``): 0.89x the traced forward at 64x64 on a CPU,
+none at 256x256, and where shapes change from call to call it records instead of replaying;
+after ``MAX_TOTAL_RECORDINGS`` it traces every call.
+
 Gradients: a frozen function does not carry them through the rasteriser's ``dr.CustomOp``
 (measured with Dr.Jit 1.5.0: every gradient came back zero, silently), so ``FrozenForward``
 refuses inputs that need gradients; the differentiable path stays the traced one.
 """
+
+import logging
 
 import drjit as dr
 
 from usplat_dr.render.pipeline import rasterize_drjit
 from usplat_dr.render.settings import RasterSettings
 
-#: Recorded configurations kept (least recently used dropped): shapes of one run rarely vary.
+log = logging.getLogger(__name__)
+
+#: Recorded configurations kept (least recently used dropped).
 MAX_RECORDINGS = 8
+#: Recordings after which a ``FrozenForward`` traces every call instead: a run whose shapes or
+#: capacities keep changing records more than it replays. (The demo's evaluation and budget
+#: benchmark, 2026-11-29: 24 recordings, 7 cached, Dr.Jit reporting that dry runs of a recording
+#: had failed at least 17 times.)
+MAX_TOTAL_RECORDINGS = 32
 
 
 class FrozenForward:
@@ -38,10 +51,12 @@ class FrozenForward:
         self.image_shape = tuple(image_shape)
         self.settings = settings or RasterSettings()
         self.capacity: dict[tuple, int] = {}  # pair lanes per shape key
+        self.gave_up = False  # too many recordings: every call traced (MAX_TOTAL_RECORDINGS)
         # Widths are baked into recorded kernels (dr.width becomes a literal), so every size the
         # body depends on is part of the configuration's key: another shape records anew.
         self._frozen = dr.freeze(self._body, state_fn=lambda capacity, *t: (
-            capacity, tuple(tuple(x.shape) for x in t)), limit=MAX_RECORDINGS)
+            capacity, tuple(tuple(x.shape) for x in t)), limit=MAX_RECORDINGS,
+            warn_after=MAX_TOTAL_RECORDINGS + 1)  # this class says it once, below
 
     @property
     def recordings(self) -> int:
@@ -68,6 +83,12 @@ class FrozenForward:
             raise ValueError("FrozenForward needs at least one Gaussian (means has shape "
                              f"{tuple(tensors[5].shape)}); render empty scenes unfrozen")
         capacity = self.capacity.get(key)
+        if self.recordings >= MAX_TOTAL_RECORDINGS:
+            if not self.gave_up:
+                log.warning("FrozenForward: %d recordings for %s images, more than it replays; "
+                            "tracing every call from now on", self.recordings, self.image_shape)
+                self.gave_up = True
+            capacity = None
         if capacity is None:  # a new shape: traced once, which measures the pairs it needs
             out = rasterize_drjit(*tensors[:4], self.image_shape, *tensors[4:], self.settings,
                                   check=False)
