@@ -41,8 +41,9 @@ class FrozenForward:
     """``rasterize_drjit`` without gradients, recorded per input shape and replayed.
 
     Parameter ``image_shape`` (``tuple[int, int]``) and ``settings`` (``RasterSettings``): fixed
-    for the object, as the torch entry's wrapped function fixes them. Call it with the ten
-    tensor arguments of ``rasterize_drjit`` (``TensorXf``, no gradients); it returns
+    for the object, as the torch entry's wrapped function fixes them. Call it with the nine
+    tensor arguments of ``rasterize_drjit`` (all but ``image_shape``; ``TensorXf``, no
+    gradients); it returns
     ``(color, alpha, depth, radii, num_pairs)`` as the torch entry's wrapped function does.
     ``recordings`` counts the recordings made (one per new shape or capacity).
     """
