@@ -172,12 +172,8 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
         return _bin_fixed(p, x0, x1, y0, y1, count, q_max, tile_size, tile_base, grid_x,
                           num_tiles, capacity)
     UInt32 = type(count)
-    n = dr.width(count)
-    # ---- Global depth order (stable radix sort; culled Gaussians have count 0) ----
-    perm = dr.argsort(dr.select(count > 0, dr.detach(p.z), dr.inf))
-    count_sorted = dr.gather(UInt32, count, perm)
-    end = dr.prefix_reduce(dr.ReduceOp.Add, count_sorted, exclusive=False)
-    num_pairs = int(end[n - 1])
+    perm, count_sorted, end = _depth_order(p, count)
+    num_pairs = int(end[dr.width(count) - 1])
 
     tile_count = dr.zeros(UInt32, num_tiles)
     if num_pairs == 0:
@@ -200,6 +196,14 @@ def bin_gaussians(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, ti
     pair_gid = dr.gather(UInt32, gid, kept)
     return Bins(pair_gid=pair_gid, tile_start=tile_start, tile_end=tile_end, num_pairs=num_kept,
                 needed=num_pairs)
+
+
+def _depth_order(p: Projected, count):
+    """Gaussians in global depth order (stable radix sort; culled ones, count 0, last): the
+    permutation, their pair counts in that order and the inclusive sum of those counts."""
+    perm = dr.argsort(dr.select(count > 0, dr.detach(p.z), dr.inf))
+    count_sorted = dr.gather(type(count), count, perm)
+    return perm, count_sorted, dr.prefix_reduce(dr.ReduceOp.Add, count_sorted, exclusive=False)
 
 
 def _pairs(p: Projected, perm, begin, count_sorted, size: int, x0, x1, y0, q_max,
@@ -264,9 +268,7 @@ def _bin_fixed(p: Projected, x0, x1, y0, y1, count, q_max, tile_size: int, tile_
                num_tiles: int, capacity: int) -> Bins:
     """``bin_gaussians`` with ``capacity`` pair lanes and no host read (see there)."""
     UInt32 = type(count)
-    perm = dr.argsort(dr.select(count > 0, dr.detach(p.z), dr.inf))
-    count_sorted = dr.gather(UInt32, count, perm)
-    end = dr.prefix_reduce(dr.ReduceOp.Add, count_sorted, exclusive=False)
+    perm, count_sorted, end = _depth_order(p, count)
     begin = end - count_sorted
     needed = dr.gather(UInt32, end, dr.opaque(UInt32, dr.width(end) - 1))  # one lane
     # A Gaussian owns the lanes [begin, end) that fit; one starting past the capacity owns none.

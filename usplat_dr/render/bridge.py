@@ -101,14 +101,14 @@ def _wrapped(image_shape: tuple[int, int], settings: RasterSettings):
     arguments as PyTrees (a dataclass would be rebuilt with gradient values).
     """
 
-    frozen = FrozenForward(image_shape, settings)
+    frozen = FrozenForward(image_shape, settings) if settings.freeze_forward else None
 
     @dr.wrap(source="torch", target="drjit")
     def render(extrinsics, intrinsics, near, far, background_color, means, covariances,
                sh_coefficients, opacities):
         args = (extrinsics, intrinsics, near, far, background_color, means, covariances,
                 sh_coefficients, opacities)
-        if settings.freeze_forward and not any(dr.grad_enabled(t) for t in args[5:]):
+        if frozen is not None and not any(dr.grad_enabled(t) for t in args[5:]):
             return frozen(*args)
         out = rasterize_drjit(extrinsics, intrinsics, near, far, image_shape, background_color,
                               means, covariances, sh_coefficients, opacities, settings,
