@@ -116,11 +116,13 @@ def test_render_demo_writes_images(tmp_path, caplog):
     (["eval", "--checkpoint", "c", "--data", "d", "--precision", "fp16"],
      "invalid choice: 'fp16'"),
     (["eval", "--checkpoint", "c", "--data", "d", "--gaussians", "0"],
-     "argument --gaussians: must be a count (an integer >= 1) or a fraction in (0, 1]"),
+     "argument --gaussians: must be a count (an integer >= 1), a fraction in (0, 1]"),
     (["export-ply", "--checkpoint", "c", "--data", "d", "--gaussians", "1.5"],
      "argument --gaussians: must be a count"),
     (["render", "--checkpoint", "c", "--gaussians", "30%", "--rank-by", "size"],
      "argument --rank-by: invalid choice: 'size'"),
+    (["eval", "--checkpoint", "c", "--data", "d", "--gaussians", "auto", "--tolerance", "-1"],
+     "argument --tolerance: must be a number of dB >= 0"),
     (["bench", "--gaussians", "0.1,1.5"],
      "--gaussians/--fractions: must be a count (an integer >= 1)"),
     (["bench", "--fractions", "0.1,0"], "--gaussians/--fractions: must be a count"),
@@ -171,6 +173,8 @@ MISTAKES = [
      "--target must be in 0..1"),
     (["export-ply", "--checkpoint", SHIPPED, "--data", "{data}", "--gaussians", "0.3",
       "--rank-by", "learned"], "rank_by='learned' needs a model with an importance head"),
+    (["export-ply", "--checkpoint", SHIPPED, "--data", "{data}", "--gaussians", "0.3",
+      "--tolerance", "0.5"], "a tolerance (0.5) applies to budget='auto' only"),
     (["train", "--config", "{tmp}/missing.yaml"],
      "config file '{tmp}/missing.yaml' does not exist"),
     (["train", "--config", "synthetic_tiny.yaml", "train.stepz=3"], "unknown key 'train.stepz'"),
@@ -220,6 +224,35 @@ def test_export_ply_writes_the_budgeted_gaussians(gaussians, expected, one_scene
     assert any("no importance head" in r.message for r in caplog.records)
     # a standard 3DGS viewer's reader (plyfile, a test extra: as the graphdeco viewers read it)
     assert plyfile.PlyData.read(str(out))["vertex"].count == expected
+
+
+def test_gaussians_auto_chooses_per_scene_and_eval_writes_the_choice(one_scene, tmp_path,
+                                                                      capsys):
+    import csv
+    import json
+
+    out = tmp_path / "g.ply"
+    assert main(["-q", "export-ply", "--checkpoint", SHIPPED, "--data", str(one_scene),
+                 "--image-shape", "32", "32", "--gaussians", "auto", "--tolerance", "1",
+                 "--out", str(out)]) == 0
+    assert "chosen by the automatic count" in capsys.readouterr().out
+    assert plyfile.PlyData.read(str(out))["vertex"].count <= 2 * 32 * 32
+    ev = tmp_path / "eval"
+    assert main(["-q", "eval", "--checkpoint", SHIPPED, "--data", str(one_scene),
+                 "--image-shape", "32", "32", "--gaussians", "auto", "--out", str(ev)]) == 0
+    rows = list(csv.DictReader(open(ev / "per_scene.csv")))
+    assert rows and all(0 < float(r["auto_keep"]) <= 1 for r in rows)
+    # the Gaussians each target kept are the chosen fraction of the 2 x 32 x 32 predicted
+    for r in rows:
+        keep = float(r["auto_keep"])
+        expected = 2048 if keep == 1 else round(keep * 2048)
+        assert int(r["gaussians_kept"]) == expected
+        assert float(r["gaussians_rendered"]) <= expected
+    summary = json.loads((ev / "summary.json").read_text())
+    assert summary["gaussians"] == {"auto": {"tolerance_db": 0.2, "merge": True}}
+    assert summary["splits"]["standard"]["mean_auto_keep"] == pytest.approx(
+        sum(float(r["auto_keep"]) for r in rows if r["split"] == "standard")
+        / sum(r["split"] == "standard" for r in rows))
 
 
 def test_debug_shows_the_traceback(tmp_path):

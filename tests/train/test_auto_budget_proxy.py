@@ -6,7 +6,10 @@ import math
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
 import torch
+
+from usplat_dr.model.auto_budget import Calibration
 
 SCRIPT = Path(__file__).parents[2] / "train" / "studies" / "auto_budget_proxy.py"
 spec = importlib.util.spec_from_file_location("auto_budget_proxy", SCRIPT)
@@ -64,7 +67,8 @@ def test_the_calibration_line_and_margin_match_numpy():
         per_scene[f"indoor_{k:03d}"] = {
             1.0: (0.0, 0.0),
             **{keep: (p, 0.1 + 0.2 * p + float(rng.normal(0, 0.05))) for keep, p in proxy.items()}}
-    fits = study.calibrate(per_scene, 0.9)
+    calibration = Calibration.fit(per_scene, 0.9, "dither", "dev")
+    fits = {row[0]: row[1:] for row in calibration.fits}
     for keep in (0.3, 0.5):
         x = np.array([f[keep][0] for f in per_scene.values()])
         y = np.array([f[keep][1] for f in per_scene.values()])
@@ -76,7 +80,8 @@ def test_the_calibration_line_and_margin_match_numpy():
 
 
 def test_the_calibrated_count_keeps_the_smallest_budget_predicted_within_tolerance():
-    fits = {0.1: (0.5, 1.0, 0.1), 0.3: (0.0, 0.5, 0.05), 0.5: (0.0, 0.1, 0.0)}
+    fits = Calibration("dither", ((0.1, 0.5, 1.0, 0.1), (0.3, 0.0, 0.5, 0.05),
+                                  (0.5, 0.0, 0.1, 0.0)), 0.9, "dev")
     found = {0.1: (1.0, 9.0), 0.3: (0.2, 9.0), 0.5: (0.1, 9.0), 1.0: (0.0, 0.0)}
     # predicted: 0.1 -> 1.6, 0.3 -> 0.15, 0.5 -> 0.01
     assert study.calibrated_choice(found, fits, 0.2) == 0.3
@@ -102,3 +107,22 @@ def test_main_reads_a_calibration_and_reports_per_kind(tmp_path, capsys):
     assert got["chosen"] == {"indoor_000": 0.5, "outdoor_000": 1.0}
     assert got["mean_kept_by_kind"] == {"indoor": 0.5, "outdoor": 1.0}
     assert "outdoor 100% (1)" in capsys.readouterr().out
+
+
+def test_ship_records_the_calibration_in_the_manifest_entry(tmp_path):
+    import json
+    manifest = [{"name": "a", "file": "a.pt"},
+                {"name": "b", "file": "b.pt", "auto_budget": [
+                    {"rank_by": "dither", "quantile": 0.9, "data": "old", "fits": []},
+                    {"rank_by": "learned", "quantile": 0.9, "data": "kept", "fits": []}]}]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    cal = Calibration("dither", ((0.5, 0.1, 0.2, 0.3),), 0.9, "dev")
+    study.ship("b", cal, root=tmp_path)
+    entries = json.loads((tmp_path / "manifest.json").read_text())
+    assert "auto_budget" not in entries[0]
+    # the dither calibration replaced, the learned one left as it was
+    got = {d["rank_by"]: d for d in entries[1]["auto_budget"]}
+    assert got["learned"]["data"] == "kept"
+    assert Calibration.from_dict(got["dither"]) == cal
+    with pytest.raises(ValueError, match="--ship nope: no such entry"):
+        study.ship("nope", cal, root=tmp_path)

@@ -23,6 +23,7 @@ Writes ``proxy.csv`` (one row per scene and budget) and ``summary.json``.
 
 import argparse
 import csv
+import json
 import statistics
 from pathlib import Path
 
@@ -33,9 +34,10 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation import held_out_scenes, load_example
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.io import atomic_open, write_json
+from usplat_dr.model.auto_budget import AutoBudget, Calibration, choose_keep
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.uniquesplat import StudyHooks
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.checkpoints import CHECKPOINTS, load
 
 KEEPS = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7)
 TOLERANCES = (0.1, 0.2, 0.3, 0.5, 1.0)
@@ -72,33 +74,39 @@ def read_proxy_csv(path) -> dict:
     return found
 
 
-def calibrate(per_scene: dict, quantile: float) -> dict:
-    """{keep: (intercept, slope, margin)}: per budget below 1, the least-squares line of the
-    real loss in the proxy loss over the calibration scenes, and the ``quantile`` of its
-    residuals (real - line) as the margin."""
-    keeps = sorted({k for found in per_scene.values() for k in found if k < 1.0})
-    fits = {}
-    for keep in keeps:
-        pairs = [found[keep] for found in per_scene.values() if keep in found]
-        if len(pairs) < 3:
-            raise ValueError(f"--calibration: budget {keep:g} has {len(pairs)} scenes; a line "
-                             f"and its residuals need at least 3")
-        xs = torch.tensor([p[0] for p in pairs], dtype=torch.float64)
-        ys = torch.tensor([p[1] for p in pairs], dtype=torch.float64)
-        design = torch.stack([torch.ones_like(xs), xs], dim=1)
-        coef = torch.linalg.lstsq(design, ys[:, None]).solution[:, 0]
-        residual = ys - design @ coef
-        fits[keep] = (float(coef[0]), float(coef[1]),
-                      float(torch.quantile(residual, quantile)))
-    return fits
+def calibrated_choice(found: dict, calibration: Calibration, tolerance: float) -> float:
+    """The budget the library's automatic count chooses for a scene measured as ``found``
+    ({keep: (proxy loss, real loss)}): the smallest whose predicted loss is within
+    ``tolerance``, 1 (every Gaussian) where none is."""
+    keeps = tuple(sorted(k for k in found if k < 1.0))
+    return choose_keep(lambda k: found[k][0], AutoBudget(tolerance, keeps=keeps),
+                       calibration)[0]
 
 
-def calibrated_choice(found: dict, fits: dict, tolerance: float) -> float:
-    """The smallest budget whose predicted real loss (line + margin) is within ``tolerance``;
-    1 (every Gaussian) where none is."""
-    ok = [k for k, (a, b, margin) in fits.items()
-          if k in found and a + b * found[k][0] + margin <= tolerance]
-    return min(ok, default=1.0)
+def calibration_data(path: Path) -> str:
+    """What a calibration was fitted on: the set and scene count this study wrote beside its
+    ``proxy.csv`` (``summary.json``'s ``data``), else the file's path."""
+    summary = path.parent / "summary.json"
+    scenes = len(read_proxy_csv(path))
+    if summary.is_file():
+        return f"{json.loads(summary.read_text()).get('data', path)}, {scenes} scenes"
+    return f"{path}, {scenes} scenes"
+
+
+def ship(name: str, calibration: Calibration, root: Path = CHECKPOINTS) -> None:
+    """Record ``calibration`` in the manifest entry of the shipped checkpoint ``name`` (its
+    ``auto_budget`` list, replacing one of the same ranking). Re-shipping the weights
+    (train/ship_checkpoint.py) writes a new entry without it: a calibration belongs to the
+    weights it was measured with."""
+    path = root / "manifest.json"
+    manifest = json.loads(path.read_text())
+    entry = next((e for e in manifest if e["name"] == name), None)
+    if entry is None:
+        raise ValueError(f"--ship {name}: no such entry in {path} (names: "
+                         f"{', '.join(e['name'] for e in manifest)})")
+    kept = [d for d in entry.get("auto_budget", []) if d.get("rank_by") != calibration.rank_by]
+    entry["auto_budget"] = [*kept, calibration.as_dict()]
+    write_json(path, manifest)
 
 
 def choice_table(per_scene: dict, chosen_by, summary: dict, key: str) -> None:
@@ -136,8 +144,14 @@ def main(argv=None) -> int:
                    help="the calibration residuals' quantile added as a margin")
     p.add_argument("--reuse", action="store_true",
                    help="read OUT/proxy.csv instead of computing it again")
+    p.add_argument("--ship", metavar="NAME",
+                   help="record the calibration made from --calibration in the manifest entry "
+                   "of the shipped checkpoint NAME (the one measured), where --gaussians auto "
+                   "finds it")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
+    if args.ship is not None and args.calibration is None:
+        p.error("--ship needs --calibration (the development set's proxy.csv to fit)")
     if args.calibration is not None and not args.calibration.is_file():
         p.error(f"--calibration {args.calibration}: no such file (a proxy.csv this study "
                 f"wrote for another set)")
@@ -162,13 +176,17 @@ def main(argv=None) -> int:
     choice_table(per_scene, lambda found, tol: min(k for k, v in found.items() if v[0] <= tol),
                  summary, "proxy")
     if args.calibration is not None:
-        fits = calibrate(read_proxy_csv(args.calibration), args.quantile)
-        summary["calibration"] = {"file": str(args.calibration), "quantile": args.quantile,
-                                  "fits": {str(k): v for k, v in fits.items()}}
+        calibration = Calibration.fit(read_proxy_csv(args.calibration), args.quantile,
+                                      args.rank_by, calibration_data(args.calibration))
+        summary["calibration"] = {"file": str(args.calibration), **calibration.as_dict()}
         print(f"\nCalibrated on {args.calibration} (line per budget, margin = the "
               f"{args.quantile:g} quantile of its residuals):")
-        choice_table(per_scene, lambda found, tol: calibrated_choice(found, fits, tol),
+        choice_table(per_scene, lambda found, tol: calibrated_choice(found, calibration, tol),
                      summary, "calibrated")
+        if args.ship is not None:
+            ship(args.ship, calibration)
+            print(f"\nrecorded in checkpoints/manifest.json, entry {args.ship}: auto_budget "
+                  f"(rank_by={args.rank_by})")
     print("\n| kept | mean proxy loss, dB | mean real loss, dB |\n|---|---|---|")
     for keep in sorted({k for f in per_scene.values() for k in f if k < 1.0}):
         proxy = statistics.mean(f[keep][0] for f in per_scene.values())

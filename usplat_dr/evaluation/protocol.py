@@ -36,6 +36,7 @@ from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.evaluation.provenance import keys_in_training
 from usplat_dr.io import atomic_open, write_json
+from usplat_dr.model.auto_budget import AutoBudget, make_budget
 from usplat_dr.model.budget import GaussianBudget
 
 log = logging.getLogger(__name__)
@@ -125,7 +126,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = model.to(device).eval()
-    keep = GaussianBudget.of(budget, rank_by)  # checked before any scene is read
+    keep = make_budget(budget, rank_by)  # checked before any scene is read
     # The view-specificity meter for a (c), on the exact model (no budget, no pruning)
     metered = (bool(view_meter) and getattr(model, "specific", None) is not None
                and budget is None and prune is None)
@@ -156,6 +157,11 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
                                     batch["target"]["depth"][0, j]) for j in range(len(gt))]
                 for key in ("abs_rel", "rmse", "delta1"):
                     row[key] = nan_mean([d[key] for d in dm])
+            if keep is not None:
+                row["gaussians_kept"] = int(result.aux["kept"][0].float().mean())
+                row["gaussians_rendered"] = float(result.aux["rendered"][0].float().mean())
+            if "auto_keep" in result.aux:
+                row["auto_keep"] = float(result.aux["auto_keep"][0])
             if "kept_mask" in result.aux:  # where a budget went (evaluation.allocation)
                 v, h, w = batch["context"]["image"].shape[1], *gt.shape[-2:]
                 kept = kept_per_pixel(result.aux["kept_mask"].cpu(), v, h, w)
@@ -191,6 +197,10 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
             metrics["lpips"] = "unavailable (no LPIPS weight files given)"
         if any("kept" in r for r in scenes):
             metrics["allocation"] = allocation_summary(scenes)
+        for key in ("auto_keep", "gaussians_kept", "gaussians_rendered"):
+            vals = [r[key] for r in scenes if key in r]
+            if vals:  # a budget's mean count per scene (the automatic one's fraction)
+                metrics[f"mean_{key}"] = statistics.mean(vals)
         if readings:
             reading = view_specificity.summarise(readings)
             metrics["view_specificity"] = reading.as_dict()
@@ -212,8 +222,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     summary.update(
         parameters=sum(p.numel() for p in model.parameters()),
         variant=model.cfg.variant, prune=prune.label() if prune is not None else "none",
-        gaussians="all" if budget is None else budget,
-        rank_by=None if budget is None else (rank_by or (
+        gaussians=budget_record(keep),
+        rank_by=None if keep is None else (keep.rank_by or (
             "learned" if getattr(model, "importance", None) is not None else "dither")),
         precision=getattr(model, "inference_precision", "float32"),
         image_shape=list(dataset.get("image_shape", ())),
@@ -223,6 +233,10 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
               "psnr_shiny", "psnr_matte"]
     if metered:
         fields += ["view_spread", "view_psnr_mean", "view_psnr_abs", "view_psnr_zero"]
+    if keep is not None:
+        fields += ["gaussians_kept", "gaussians_rendered"]
+    if isinstance(keep, AutoBudget):
+        fields += ["auto_keep"]
     if any("kept" in r for r in rows):
         fields += list(ALLOCATION_COLUMNS)
     with atomic_open(out / "per_scene.csv", "w") as f:
@@ -232,6 +246,23 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     write_json(out / "summary.json", summary)
     log.info("evaluation summary: %s", json.dumps(summary["splits"]))
     return summary
+
+
+def budget_record(keep: GaussianBudget | AutoBudget | None):
+    """The summary's ``gaussians``: ``"all"``, the count or fraction kept, or the automatic
+    count's settings.
+
+    Examples:
+        >>> budget_record(None), budget_record(GaussianBudget(0.3))
+        ('all', 0.3)
+        >>> budget_record(AutoBudget())
+        {'auto': {'tolerance_db': 0.2, 'merge': True}}
+    """
+    if keep is None:
+        return "all"
+    if isinstance(keep, AutoBudget):
+        return {"auto": {"tolerance_db": keep.tolerance, "merge": keep.merge}}
+    return keep.keep
 
 
 def allocation_summary(scenes: list[dict]) -> dict:

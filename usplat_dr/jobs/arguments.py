@@ -49,18 +49,23 @@ positive_int = at_least(1)
 non_negative_int = at_least(0)
 
 
-def gaussians_argument(text: str) -> int | float:
-    """An argparse ``type`` for ``--gaussians``: a count (an integer >= 1) or a fraction in
-    (0, 1] of the model's Gaussians (``0.3`` or ``30%``); ``1`` is one Gaussian, ``1.0`` all.
+def gaussians_argument(text: str) -> int | float | str:
+    """An argparse ``type`` for ``--gaussians``: a count (an integer >= 1), a fraction in
+    (0, 1] of the model's Gaussians (``0.3`` or ``30%``; ``1`` is one Gaussian, ``1.0`` all)
+    or ``auto`` (each scene's own count, model/auto_budget.py).
 
     Examples:
         >>> gaussians_argument("5000"), gaussians_argument("0.3"), gaussians_argument("25%")
         (5000, 0.3, 0.25)
+        >>> gaussians_argument("auto")
+        'auto'
         >>> gaussians_argument("1.5")  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
         argparse.ArgumentTypeError: must be a count (an integer >= 1) or a fraction in ...
     """
+    if text.strip() == "auto":
+        return "auto"
     value: int | float | None = None
     try:
         if text.endswith("%"):
@@ -73,8 +78,8 @@ def gaussians_argument(text: str) -> int | float:
         value = None
     ok = value is not None and (value >= 1 if isinstance(value, int) else 0 < value <= 1)
     if not ok:
-        raise argparse.ArgumentTypeError(f"must be a count (an integer >= 1) or a fraction in "
-                                         f"(0, 1] (0.3 or 30%), got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be a count (an integer >= 1), a fraction in "
+                                         f"(0, 1] (0.3 or 30%) or auto, got {text!r}")
     return value
 
 
@@ -116,12 +121,34 @@ def add_square_size_alias(p: argparse.ArgumentParser, name: str = "--size") -> N
                    metavar="N", help="the old name of --image-shape N N (one more release)")
 
 
+def tolerance_db(text: str) -> float:
+    """An argparse ``type`` for ``--tolerance``: a number of dB >= 0.
+
+    Examples:
+        >>> tolerance_db("0.5")
+        0.5
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of dB >= 0 (0.2 by default), got "
+                                         f"{text!r}")
+    return value
+
+
 def add_budget_arguments(p: argparse.ArgumentParser) -> None:
-    """``--gaussians`` and ``--rank-by``: a Gaussian budget per target view
+    """``--gaussians``, ``--rank-by`` and ``--tolerance``: a Gaussian budget per target view
     (``UniqueSplat.forward``'s ``budget`` and ``rank_by``; docs/model.md)."""
     p.add_argument("--gaussians", type=gaussians_argument, metavar="K",
                    help="keep K Gaussians per target view: a count (5000) or a fraction of "
-                   "them (0.3 or 30%%), the most important by --rank-by (default: all)")
+                   "them (0.3 or 30%%), the most important by --rank-by, or auto: per scene "
+                   "the fewest whose loss is predicted within --tolerance, near-duplicates "
+                   "merged (default: all)")
+    p.add_argument("--tolerance", type=tolerance_db, metavar="DB",
+                   help="with --gaussians auto: the loss against all Gaussians the count may "
+                   "predict, in dB (default 0.2)")
     p.add_argument("--rank-by", choices=RANKINGS,
                    help="how --gaussians ranks them: learned (the model's importance head, "
                    "the kept ones adapted to the budget), dither (the head's untrained start: "

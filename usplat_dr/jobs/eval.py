@@ -18,6 +18,7 @@ from usplat_dr.jobs.arguments import (
     out_folder,
 )
 from usplat_dr.jobs.render import add_image_shape_argument, add_trust_argument, image_shape
+from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import checkpoint_provenance, load
 
@@ -104,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
     record = checkpoint_provenance(args.checkpoint, args.trust_checkpoint)
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
                        prune=PruneSettings(merge=True) if args.prune else None,
-                       provenance=record, budget=args.gaussians, rank_by=args.rank_by)
+                       provenance=record,
+                       budget=make_budget(args.gaussians, args.rank_by, args.tolerance))
     print(json.dumps(summary, indent=1))
     if not any(split["scenes"] for split in summary["splits"].values()):
         first = next(iter(summary["splits"].items()))

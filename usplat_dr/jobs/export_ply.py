@@ -8,7 +8,7 @@ import torch
 from usplat_dr.data.types import model_inputs
 from usplat_dr.jobs.arguments import non_negative_int, out_file
 from usplat_dr.jobs.render import add_example_arguments, one_example
-from usplat_dr.model.budget import GaussianBudget
+from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.model.ply import write_ply
 
 
@@ -25,13 +25,15 @@ def run(args: argparse.Namespace) -> int:
     model, batch = one_example(args)
     with torch.no_grad():
         out = model(*model_inputs(batch, torch.device(args.device)), render=False,
-                    budget=GaussianBudget.of(args.gaussians, args.rank_by))
+                    budget=make_budget(args.gaussians, args.rank_by, args.tolerance))
     n = out.num_targets
     if not 0 <= args.target < n:
         raise ValueError(f"--target must be in 0..{n - 1} (the scene's target views), got "
                          f"{args.target}")
     path = write_ply(args.out, out.target(0, args.target), min_opacity=args.min_opacity)
     kept = "" if args.gaussians is None else f" ({int(out.aux['kept'][0, args.target])} kept)"
+    if "auto_keep" in out.aux:
+        kept = kept[:-1] + f", {float(out.aux['auto_keep'][0]):.0%} chosen by the automatic count)"
     print(f"wrote {path}: the Gaussians predicted for target {args.target} of "
           f"{batch['scene'][0]}{kept}")
     return 0

@@ -157,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
         model, batch = one_example(args)
         colors, depths = render_path(model, batch, args.frames, device=args.device,
                                      path=args.path, image_shape=image_shape(args),
-                                     budget=args.gaussians, rank_by=args.rank_by)
+                                     budget=args.gaussians, rank_by=args.rank_by,
+                                     tolerance=args.tolerance)
     else:
         model = load(args.checkpoint, args.device, args.trust_checkpoint)
         pred = predict_own_views(model, args)
@@ -237,13 +238,15 @@ def predict_own_views(model, args: argparse.Namespace) -> Prediction:
     return model.predict(views.images, intrinsics=views.intrinsics,
                          extrinsics=views.extrinsics, target_intrinsics=tk,
                          target_extrinsics=te, near=near, far=far, chunk=PATH_CHUNK,
-                         budget=args.gaussians, rank_by=args.rank_by, all_gaussians=False)
+                         budget=args.gaussians, rank_by=args.rank_by, all_gaussians=False,
+                         tolerance=args.tolerance)
 
 
 def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,
                 device: torch.device | str = "cpu", path: str = "orbit",
                 image_shape: tuple[int, int] | None = None, budget=None,
-                rank_by: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+                rank_by: str | None = None, tolerance: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Colour [F, H, W, 3] and alpha-normalised depth [F, H, W] of an example's scene along
     ``--path`` (``targets``), with ``budget`` Gaussians per frame (``None``: all)."""
     inputs = model_inputs(batch, torch.device(device))
@@ -252,5 +255,5 @@ def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,
     pred = model.predict(inputs.images[0], intrinsics=inputs.intrinsics[0],
                          extrinsics=inputs.extrinsics[0], target_intrinsics=tk,
                          target_extrinsics=te, near=inputs.near[0], far=inputs.far[0],
-                         chunk=chunk, budget=budget, rank_by=rank_by)
+                         chunk=chunk, budget=budget, rank_by=rank_by, tolerance=tolerance)
     return (pred.color.permute(0, 2, 3, 1).cpu().numpy(), pred.depth.cpu().numpy())

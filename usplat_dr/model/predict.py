@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from usplat_dr.geometry.cameras import Cameras
-from usplat_dr.model.budget import GaussianBudget
+from usplat_dr.model.auto_budget import AutoBudget, make_budget
 from usplat_dr.model.types import Gaussians
 
 #: near/far of the field's released checkpoints (MVSplat's RE10K and ACID: 1 and 100, in the
@@ -30,12 +30,15 @@ class Prediction:
     """What ``predict`` returns for N target cameras: ``gaussians[n]`` the Gaussians predicted
     for target n (each target has its own set in (c)); ``color`` [N, 3, H, W] in [0, 1];
     ``alpha`` [N, H, W] (accumulated opacity); ``depth`` [N, H, W] the expected distance along
-    each pixel's ray divided by alpha (alpha clamped at 1e-3: pixels nothing covers read ~0)."""
+    each pixel's ray divided by alpha (alpha clamped at 1e-3: pixels nothing covers read ~0).
+    ``auto_keep``: the fraction of the Gaussians the automatic count chose (``budget="auto"``),
+    else ``None``."""
 
     gaussians: list[Gaussians]
     color: Tensor
     alpha: Tensor
     depth: Tensor
+    auto_keep: float | None = None
 
 
 def _tensor(name: str, value, dims: int, tail: tuple[int, ...]) -> Tensor:
@@ -101,10 +104,11 @@ def _check_normalised(name: str, k: Tensor) -> None:
 def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
                   target_extrinsics, near=DEFAULT_NEAR, far=DEFAULT_FAR,
                   chunk: int = 8, budget=None, rank_by: str | None = None,
-                  all_gaussians: bool = True) -> Prediction:
+                  all_gaussians: bool = True, tolerance: float | None = None) -> Prediction:
     """Predict and render ``target_*`` cameras from the context ``images`` with ``model`` (a
     ``UniqueSplat``), in its evaluation mode, ``chunk`` targets per forward pass, keeping
-    ``budget`` Gaussians per target ranked by ``rank_by`` (``None``: all). See
+    ``budget`` Gaussians per target ranked by ``rank_by`` (``None``: all; ``"auto"``: the
+    automatic count within ``tolerance`` dB, chosen once for the scene). See
     ``UniqueSplat.predict``. ``all_gaussians=False``: ``gaussians`` holds the first target's
     set only, so that a long camera path holds the Gaussians of ``chunk`` targets at a time."""
     if not isinstance(chunk, int) or chunk < 1:
@@ -135,13 +139,17 @@ def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
         images = imgs[None].to(device)
         context = Cameras(e[None].to(device), k[None].to(device), near_t[None].to(device),
                           far_t[None].to(device))
-        keep = GaussianBudget.of(budget, rank_by)
+        keep = make_budget(budget, rank_by, tolerance)
+        prune, auto_keep = "auto", None
         for s in range(0, tk.shape[0], chunk):
             n = min(chunk, tk.shape[0] - s)
             targets = Cameras(te[None, s:s + n].to(device), tk[None, s:s + n].to(device),
                               near_t.min().expand(1, n).to(device),
                               far_t.max().expand(1, n).to(device))
-            out = model(images, context, targets, budget=keep)
+            out = model(images, context, targets, budget=keep, prune=prune)
+            if isinstance(keep, AutoBudget):  # chosen once: the later chunks reuse it
+                auto_keep = float(out.aux["auto_keep"][0])
+                keep, prune = out.aux["auto_budget"], out.aux["auto_prune"]
             if all_gaussians or not gaussians:
                 gaussians += [out.target(0, i) for i in range(n if all_gaussians else 1)]
             colors.append(out.color[0].clamp(0, 1))
@@ -149,4 +157,5 @@ def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
             depths.append(out.depth[0] / out.alpha[0].clamp(min=1e-3))
     finally:
         model.train(was_training)
-    return Prediction(gaussians, torch.cat(colors), torch.cat(alphas), torch.cat(depths))
+    return Prediction(gaussians, torch.cat(colors), torch.cat(alphas), torch.cat(depths),
+                      auto_keep)

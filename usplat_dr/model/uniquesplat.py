@@ -18,6 +18,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from usplat_dr.geometry.cameras import Cameras
+from usplat_dr.model.auto_budget import AutoBudget, Calibration, choose_keep, image_psnr
 from usplat_dr.model.budget import (
     GaussianBudget,
     ImportanceHead,
@@ -278,6 +279,10 @@ class UniqueSplat(nn.Module):
             self.importance = ImportanceHead(p.depth_unet_feat_dim + 3 + p.d_feature,
                                              cfg.importance_hidden, p.gaussians_per_pixel)
         self._warned_no_head = False
+        #: The automatic count's calibrations by ranking (model/auto_budget.py), from the
+        #: loaded checkpoint or its manifest entry; empty: the proxy uncalibrated.
+        self.auto_calibration: dict[str, Calibration] = {}
+        self._warned_uncalibrated = False
         self.agnostic = self.specific = None
         if cfg.variant == "baseline":
             return
@@ -390,7 +395,7 @@ class UniqueSplat(nn.Module):
     def forward(self, images: Float[Tensor, "b v 3 h w"], context: Cameras, targets: Cameras,
                 *, render: bool = True, global_step: int = 0,
                 background_color: Tensor | None = None, settings=None, prune="auto",
-                budget: GaussianBudget | None = None,
+                budget: GaussianBudget | AutoBudget | None = None,
                 hooks: StudyHooks | None = None) -> UniqueSplatOutput:
         """Gaussians per target view, and their renders (``render=True``) through the
         Dr.Jit rasteriser with MVSplat's SH basis (``settings``: a ``RasterSettings``).
@@ -404,12 +409,16 @@ class UniqueSplat(nn.Module):
         ``budget`` (a ``GaussianBudget``, model/budget.py): keep K Gaussians per target, ranked
         as it says. ``out.aux["kept"]`` [B, N]: the Gaussians each target kept; with a budget
         also ``importance`` (the ranking scores) and ``kept_mask`` [B*N, G]. ``budget=None``
-        (or a fraction of 1) leaves every output as without it, bit for bit.
+        (or a fraction of 1) leaves every output as without it, bit for bit. An ``AutoBudget``
+        (model/auto_budget.py; inference, one scene a call) chooses the scene's budget from
+        renders of its context views: ``out.aux["auto_keep"]`` [B] the fraction chosen,
+        ``auto_readings`` what it measured, ``auto_budget`` and ``auto_prune`` the budget and
+        pruning chosen; with its ``merge`` the targets render with near-duplicates merged.
 
         ``hooks`` (``StudyHooks``): for studies that hold parts of the network fixed."""
-        if budget is not None and not isinstance(budget, GaussianBudget):
-            raise ValueError(f"budget must be a GaussianBudget (e.g. GaussianBudget(0.3)) or "
-                             f"None, got {budget!r}")
+        if budget is not None and not isinstance(budget, (GaussianBudget, AutoBudget)):
+            raise ValueError(f"budget must be a GaussianBudget (e.g. GaussianBudget(0.3)), an "
+                             f"AutoBudget or None, got {budget!r}")
         hooks = hooks or StudyHooks()
         encoding, delta_w = hooks.encoding, hooks.delta_w
         extrinsics, intrinsics, near, far = (context.extrinsics, context.intrinsics,
@@ -439,6 +448,8 @@ class UniqueSplat(nn.Module):
         gaussians = self._gaussians_per_target(depth_out, extrinsics, intrinsics, (h, w),
                                                global_step, b, n, nb)
         kept = len(gaussians)
+        if isinstance(budget, AutoBudget):
+            budget, prune = self._auto_budget(budget, images, context, depth, hooks, prune, aux)
         if budget is not None:
             gaussians, kept = self._budgeted(gaussians, depth, aux, targets, (h, w), v, b, n,
                                              budget)
@@ -456,6 +467,51 @@ class UniqueSplat(nn.Module):
         if render:
             self.render_targets(out, targets, (h, w), background_color, settings, prune)
         return out
+
+    def _auto_budget(self, auto: AutoBudget, images: Tensor, context: Cameras,
+                     depth: DepthOutputs, hooks: StudyHooks, prune, aux: dict
+                     ) -> tuple[GaussianBudget | None, PruneSettings | None]:
+        """``forward``'s automatic count (model/auto_budget.py): the budget it chose for this
+        scene (``None``: every Gaussian) and the pruning the targets render with; ``aux``
+        gets ``auto_keep`` and ``auto_readings``."""
+        if self.training:
+            raise ValueError("budget=AutoBudget(...) chooses a count at inference: call "
+                             "model.eval() first (training takes a GaussianBudget)")
+        if images.shape[0] != 1:
+            raise ValueError(f"budget=AutoBudget(...) chooses a count per scene: pass one scene "
+                             f"a call (batch size 1), got {images.shape[0]}")
+        if hooks.delta_w is not None:
+            raise ValueError("budget=AutoBudget(...) renders the context views as targets, "
+                             "which hooks.delta_w (sized for the targets) cannot serve")
+        rank_by = auto.rank_by or "dither"  # the better one at the budgets a count keeps
+        calibration = auto.calibration or self.auto_calibration.get(rank_by)
+        if calibration is not None and calibration.rank_by != rank_by:
+            raise ValueError(f"AutoBudget.calibration was measured with rank_by="
+                             f"{calibration.rank_by!r}, not {rank_by!r}: pass that ranking or "
+                             f"a calibration of this one")
+        if calibration is None and not self._warned_uncalibrated:
+            self._warned_uncalibrated = True
+            log.warning("no calibration of the automatic count for this model and rank_by=%r: "
+                        "the context views' own loss is the prediction, which overstates the "
+                        "targets' and keeps more Gaussians than needed; make one with "
+                        "train/studies/auto_budget_proxy.py (docs/model.md)", rank_by)
+        inner = StudyHooks(encoding=depth)
+
+        def context_psnr(budget: GaussianBudget | None) -> float:
+            with torch.no_grad():
+                out = self.forward(images, context, context, hooks=inner, budget=budget)
+            return float(image_psnr(out.color, images).mean())
+
+        reference = context_psnr(None)
+        keep, readings = choose_keep(
+            lambda k: reference - context_psnr(GaussianBudget(k, rank_by)), auto, calibration)
+        if auto.merge and (prune is None or not prune.merge):
+            prune = replace(prune or PruneSettings(), merge=True)
+        chosen = None if keep >= 1.0 else GaussianBudget(keep, rank_by)
+        # what another call on this scene (more targets) passes to render as this one does
+        aux.update(auto_keep=torch.tensor([keep], dtype=torch.float64, device=images.device),
+                   auto_readings=[readings], auto_budget=chosen, auto_prune=prune)
+        return chosen, prune
 
     def _budgeted(self, gaussians: Gaussians, depth: DepthOutputs, aux: dict, targets: Cameras,
                   image_shape: tuple[int, int], v: int, b: int, n: int,
@@ -675,8 +731,9 @@ class UniqueSplat(nn.Module):
 
     def predict(self, images, *, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
                 near=DEFAULT_NEAR, far=DEFAULT_FAR, chunk: int = 8,
-                budget: float | int | None = None,  # noqa: PYI041 (beartype: int is no float)
-                rank_by: str | None = None, all_gaussians: bool = True) -> Prediction:
+                budget: float | int | str | None = None,  # noqa: PYI041 (beartype: int is no float)
+                rank_by: str | None = None, all_gaussians: bool = True,
+                tolerance: float | None = None) -> Prediction:
         """Novel views from a user's own images: the Gaussians, colour and depth of each
         target camera (a ``Prediction``), predicted in evaluation mode without gradients.
 
@@ -688,14 +745,17 @@ class UniqueSplat(nn.Module):
         range in scene units (a number, or one per context view; the default is MVSplat's
         RE10K range); ``chunk`` targets per forward pass. Cameras are keyword-only.
         ``budget``: keep K Gaussians per target (a count, or a fraction in (0, 1]) ranked by
-        ``rank_by``, as in ``forward``; each ``gaussians[n]`` then holds K.
+        ``rank_by``, as in ``forward``; each ``gaussians[n]`` then holds K. ``budget="auto"``:
+        the scene's own K, the smallest whose loss is predicted within ``tolerance`` dB
+        (default 0.2; model/auto_budget.py), ``Prediction.auto_keep`` the fraction chosen; the
+        targets then render with near-duplicates merged.
         ``all_gaussians=False``: ``gaussians`` holds the first target's only (a long camera
         path then holds ``chunk`` targets' Gaussians at a time)."""
         return predict_views(self, images, intrinsics=intrinsics, extrinsics=extrinsics,
                              target_intrinsics=target_intrinsics,
                              target_extrinsics=target_extrinsics, near=near, far=far,
                              chunk=chunk, budget=budget, rank_by=rank_by,
-                             all_gaussians=all_gaussians)
+                             all_gaussians=all_gaussians, tolerance=tolerance)
 
     # ---- reporting ----------------------------------------------------------------------
 

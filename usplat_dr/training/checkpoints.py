@@ -19,6 +19,7 @@ from usplat_dr.data.chunks import MAX_IMAGE_PIXELS
 from usplat_dr.io import load_torch_file, torch_save
 from usplat_dr.io.user_files import sha256
 from usplat_dr.model import UniqueSplat, UniqueSplatCfg
+from usplat_dr.model.auto_budget import Calibration
 from usplat_dr.model.checkpoint import check_state_dict
 
 #: How a user opts in to full unpickling (named in the refusal's message).
@@ -192,6 +193,7 @@ def _built(path: Path, state: dict, device) -> tuple[UniqueSplat, int]:
         model = UniqueSplat(cfg)
     model.load_state_dict(sd)
     model.trained_depth_range = _depth_range(path, state)
+    model.auto_calibration = _auto_calibration(path, state)
     step = state.get("step", 0)
     return model.to(device).eval(), step if isinstance(step, int) else 0
 
@@ -252,6 +254,24 @@ def _depth_range(path: Path, state: dict) -> list[float] | None:
         raise ValueError(f"checkpoint {str(path)!r}: its depth_range must be four positive "
                          f"numbers [min near, max near, min far, max far], got {found!r}")
     return [float(x) for x in found]
+
+
+def _auto_calibration(path: Path, state: dict) -> dict[str, Calibration]:
+    """The automatic count's calibrations ({rank_by: Calibration}) of the checkpoint
+    ``state`` read from ``path``: the file's ``auto_budget`` (a list of
+    ``Calibration.as_dict()``), else a shipped file's manifest entry's, else none."""
+    found = state.get("auto_budget")
+    if found is None and path.parent.resolve() == CHECKPOINTS.resolve():
+        entries = json.loads((CHECKPOINTS / "manifest.json").read_text())
+        found = next((e.get("auto_budget") for e in entries if e.get("file") == path.name), None)
+    if found is None:
+        return {}
+    if not isinstance(found, list):
+        raise ValueError(f"checkpoint {str(path)!r}: its auto_budget must be a list of "
+                         f"calibrations, got {type(found).__name__}")
+    calibrations = [Calibration.from_dict(d, f"checkpoint {str(path)!r}: auto_budget")
+                    for d in found]
+    return {c.rank_by: c for c in calibrations}
 
 
 def widened_depth_range(depth_range: list[float] | None, near: torch.Tensor,
