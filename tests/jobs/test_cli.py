@@ -240,7 +240,8 @@ def test_gaussians_auto_chooses_per_scene_and_eval_writes_the_choice(one_scene, 
     ev = tmp_path / "eval"
     assert main(["-q", "eval", "--checkpoint", SHIPPED, "--data", str(one_scene),
                  "--image-shape", "32", "32", "--gaussians", "auto", "--out", str(ev)]) == 0
-    rows = list(csv.DictReader(open(ev / "per_scene.csv")))
+    with open(ev / "per_scene.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     assert rows and all(0 < float(r["auto_keep"]) <= 1 for r in rows)
     # the Gaussians each target kept are the chosen fraction of the 2 x 32 x 32 predicted
     for r in rows:

@@ -54,6 +54,7 @@ from usplat_dr.jobs.arguments import (
     non_negative_int,
 )
 from usplat_dr.jobs.report import bench_chart, bench_table
+from usplat_dr.model.auto_budget import AutoBudget
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS, StudyHooks
 from usplat_dr.render.prune import PRUNES
@@ -194,21 +195,25 @@ def _examples(data: Path, model_size: int, render_sizes, split: str = "standard"
 MEASURES = ("wall", "cpu", "render", "psnr", "ssim", "abs_rel", "gaussians", "kept", "mem")
 
 
-def budget_label(keep: float | int,  # noqa: PYI041 (beartype: int is no float)
+def budget_label(keep: float | int | str,  # noqa: PYI041 (beartype: int is no float)
                  rank_by: str) -> str:
     """A Gaussian budget's row name: ``learned30%``, ``opacity10%``, ``random5%`` for
-    fractions, ``footprint5000`` for a count.
+    fractions, ``footprint5000`` for a count, ``dither-auto`` for the automatic count.
 
     Examples:
         >>> budget_label(0.3, "learned"), budget_label(5000, "footprint")
         ('learned30%', 'footprint5000')
+        >>> budget_label("auto", "dither")
+        'dither-auto'
     """
+    if keep == "auto":
+        return f"{rank_by}-auto"
     if isinstance(keep, int):
         return f"{rank_by}{keep}"
     return f"{rank_by}{100 * keep:g}%"
 
 
-def budget_settings(gaussians, rank_by=RANKINGS) -> list[tuple[str, float | int, str]]:
+def budget_settings(gaussians, rank_by=RANKINGS) -> list[tuple[str, float | int | str, str]]:
     """``(name, keep, rank_by)`` of the Gaussian budgets to measure: each of ``gaussians``
     (counts or fractions) ranked by each of ``rank_by``."""
     return [(budget_label(k, r), k, r) for r in rank_by for k in gaussians]
@@ -279,11 +284,14 @@ def _time_budgets(config: BenchConfig, model, inputs, tgt: dict, size: int, budg
     for name, fraction, rank_by in budgets:
         with PeakMemory(device) as mem:
             w0, c0 = time.perf_counter(), time.process_time()
+            # "auto": the count chosen per scene, its renders of the context views timed with it
+            budget = (AutoBudget(rank_by=rank_by) if fraction == "auto"
+                      else GaussianBudget(fraction, rank_by))
             out = model(*inputs, render=False, hooks=StudyHooks(encoding=encoding),
-                        budget=GaussianBudget(fraction, rank_by))
+                        budget=budget)
             _wait(device)
             r0 = time.perf_counter()
-            model.render_targets(out, cams, (size, size), prune=None)
+            model.render_targets(out, cams, (size, size), prune=out.aux.get("auto_prune"))
             _wait(device)
         a = acc[(config, split, name, size)]
         a["render"].append((time.perf_counter() - r0) / n)  # rasterising the K kept

@@ -141,7 +141,7 @@ class AutoBudget:
         ValueError: AutoBudget.tolerance must be a number of dB >= 0 (0.2 by default), got -1
     """
 
-    tolerance: float | int = DEFAULT_TOLERANCE_DB  # noqa: PYI041 (beartype: int is no float)
+    tolerance: float | int = DEFAULT_TOLERANCE_DB
     rank_by: str | None = None
     merge: bool = True
     calibration: Calibration | None = None
@@ -162,7 +162,7 @@ class AutoBudget:
 
 
 def make_budget(keep, rank_by: str | None = None,
-                tolerance: float | int | None = None) -> "GaussianBudget | AutoBudget | None":
+                tolerance: float | None = None) -> "GaussianBudget | AutoBudget | None":
     """The budget of the loose settings commands and ``predict`` take: ``None`` (every
     Gaussian), ``"auto"`` (an ``AutoBudget`` with ``tolerance``, default 0.2 dB), an
     ``AutoBudget`` or ``GaussianBudget`` as it is, or a count / fraction.
