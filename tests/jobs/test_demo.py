@@ -117,6 +117,10 @@ def test_demo_quick_end_to_end(wheel_demo):
         assert abs(kept - round(0.1 * 2048) / 2048) < 1e-9  # K = 205 of 2 x 32 x 32 per view
     assert "## Where the budget goes" in text and "allocation/standard/" in text
     assert "`rank_by=learned`" in text and "tiny_full_budget" in text
+    assert "The automatic count (`--gaussians auto`" in text
+    with open(tmp_path / "eval_auto_full" / "per_scene.csv") as f:
+        auto = list(csv.DictReader(f))
+    assert auto and all(0 < float(r["auto_keep"]) <= 1 for r in auto)
     for config in ("tiny (a)", "tiny (c)"):
         # exact culling: same PSNR (float32 summation order only)
         assert abs(float(by[(config, "cull", "32")]["psnr_change_db"])) < 1e-3
@@ -249,6 +253,23 @@ def test_report_shows_the_live_c_meter_and_its_psnr_against_a(tmp_path):
             "0.0900 dB [0.0600, 0.1200] | -0.0300 dB [-0.1700, +0.1100] | yes |") in text
     assert "renders 25.69 dB against the shipped (a)'s 20.00 dB" in text and "+0.0056 dB" in text
     assert "live (c)" not in "\n".join(meter_lines(results))  # no live summary: no row
+
+
+def test_report_says_what_the_automatic_count_keeps_and_loses(tmp_path):
+    import dataclasses
+
+    from usplat_dr.jobs.report import auto_lines
+
+    results = demo_results(tmp_path / "demo", {})
+    auto = {"gaussians": {"auto": {"tolerance_db": 0.2, "merge": True}},
+            "splits": {"standard": {"psnr": 21.25, "scenes": 3, "mean_auto_keep": 0.9,
+                                    "mean_gaussians_rendered": 1536.0,
+                                    "mean_gaussians_total": 2048.0}}}
+    text = "\n".join(auto_lines(dataclasses.replace(results, auto=auto)))
+    # the shipped (c)'s made-up standard PSNR is 20.0 + 3 (base, baseline, agnostic, full)
+    assert ("chose 90% of (c)'s Gaussians per scene on average and rendered 75% after merging "
+            "near-duplicates: 21.25 dB against 23.00 dB with all of them (3 scenes") in text
+    assert auto_lines(results) == []
 
 
 def test_report_shows_the_beyond_c_meter_per_split_and_its_psnr_where_it_varies(tmp_path):

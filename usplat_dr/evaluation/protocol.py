@@ -162,6 +162,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
                 row["gaussians_rendered"] = float(result.aux["rendered"][0].float().mean())
             if "auto_keep" in result.aux:
                 row["auto_keep"] = float(result.aux["auto_keep"][0])
+                row["gaussians_total"] = int(result.aux["auto_total"])
             if "kept_mask" in result.aux:  # where a budget went (evaluation.allocation)
                 v, h, w = batch["context"]["image"].shape[1], *gt.shape[-2:]
                 kept = kept_per_pixel(result.aux["kept_mask"].cpu(), v, h, w)
@@ -197,7 +198,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
             metrics["lpips"] = "unavailable (no LPIPS weight files given)"
         if any("kept" in r for r in scenes):
             metrics["allocation"] = allocation_summary(scenes)
-        for key in ("auto_keep", "gaussians_kept", "gaussians_rendered"):
+        for key in ("auto_keep", "gaussians_kept", "gaussians_rendered", "gaussians_total"):
             vals = [r[key] for r in scenes if key in r]
             if vals:  # a budget's mean count per scene (the automatic one's fraction)
                 metrics[f"mean_{key}"] = statistics.mean(vals)
@@ -236,7 +237,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     if keep is not None:
         fields += ["gaussians_kept", "gaussians_rendered"]
     if isinstance(keep, AutoBudget):
-        fields += ["auto_keep"]
+        fields += ["auto_keep", "gaussians_total"]
     if any("kept" in r for r in rows):
         fields += list(ALLOCATION_COLUMNS)
     with atomic_open(out / "per_scene.csv", "w") as f:

@@ -32,6 +32,7 @@ from usplat_dr.evaluation.verdict import compare
 from usplat_dr.jobs.arguments import non_negative_int
 from usplat_dr.jobs.bench import BenchConfig, measure, write_results
 from usplat_dr.jobs.report import DemoResults, write_report
+from usplat_dr.model.auto_budget import AutoBudget
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import (
     BASE,
@@ -144,12 +145,18 @@ def run_demo(out: str | Path = "outputs/demo", recipe: str = "full", seed: int =
                           {"standard": indices["standard"]}, out / "eval_budget_full",
                           label="budget (c)", budget=BUDGET_FRACTIONS[0], images_per_split=2)
     timings["where the budget goes"] = time.perf_counter() - t
+    t = time.perf_counter()  # each scene's own count, against all Gaussians
+    auto = evaluate(bench_models[BenchConfig(PRESET, "full")], dataset,
+                    {"standard": indices["standard"]}, out / "eval_auto_full",
+                    label="auto (c)", budget=AutoBudget(), images_per_split=0)
+    timings["automatic count"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
     manifest = {e["name"]: e for e in json.loads((checkpoints / "manifest.json").read_text())}
     report = write_report(DemoResults(
         out=out, recipe=b, recipe_name=recipe, summaries=summaries, timings=timings,
         worst=worst, bench=bench, stable={v: stability(r) for v, r in runs.items()},
         verdict=verdict, tuned=tuned, provenance=provenance([data]), allocation=allocation,
+        auto=auto,
         manifest={n: manifest[n]
                   for n in (BASE, *SHIPPED.values(), *BUDGETED.values(), LIVE, BEYOND)},
         registered=registered_verdict(checkpoints), live=live, beyond=beyond))

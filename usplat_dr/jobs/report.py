@@ -91,6 +91,7 @@ class DemoResults:
     manifest: dict  # shipped checkpoint name -> its checkpoints/manifest.json entry
     registered: dict | None = None  # the shipped multi-seed verdict (checkpoints/verdict.json)
     allocation: dict | None = None  # evaluate()'s summary of (c) under a Gaussian budget
+    auto: dict | None = None  # evaluate()'s summary of (c) with the automatic count
     live: dict | None = None  # evaluate()'s summary of the live (c) on the standard split
     # evaluate()'s summary of the (c) trained with extrapolated targets (standard and
     # extrapolation splits)
@@ -316,7 +317,23 @@ def allocation_lines(r: DemoResults) -> list[str]:
     folder = r.out / "eval_budget_full" / "allocation" / "standard"
     for path in sorted(folder.glob("*.png"))[:2]:
         lines += ["", f"![{path.stem}]({path.relative_to(r.out)})"]
-    return [*lines, ""]
+    return [*lines, "", *auto_lines(r)]
+
+
+def auto_lines(r: DemoResults) -> list[str]:
+    """What the automatic count (``--gaussians auto``) kept and lost in (c) on the standard
+    split, against all Gaussians (the shipped (c)'s evaluation); nothing without it."""
+    if r.auto is None:
+        return []
+    split = r.auto["splits"]["standard"]
+    every = r.summaries["full"]["splits"]["standard"]["psnr"]
+    rendered = split["mean_gaussians_rendered"] / split["mean_gaussians_total"]
+    return [(f"The automatic count (`--gaussians auto`, tolerance "
+             f"{r.auto['gaussians']['auto']['tolerance_db']:g} dB; docs/model.md) chose "
+             f"{split['mean_auto_keep']:.0%} of (c)'s Gaussians per scene on average and "
+             f"rendered {rendered:.0%} after merging near-duplicates: {split['psnr']:.2f} dB "
+             f"against {every:.2f} dB with all of them ({split['scenes']} scenes; per scene in "
+             f"`eval_auto_full/per_scene.csv`)."), ""]
 
 
 def novel_view_lines(r: DemoResults) -> list[str]:

@@ -413,7 +413,8 @@ class UniqueSplat(nn.Module):
         (model/auto_budget.py; inference, one scene a call) chooses the scene's budget from
         renders of its context views: ``out.aux["auto_keep"]`` [B] the fraction chosen,
         ``auto_readings`` what it measured, ``auto_budget`` and ``auto_prune`` the budget and
-        pruning chosen; with its ``merge`` the targets render with near-duplicates merged.
+        pruning chosen, ``auto_total`` the Gaussians per target it chose from; with its
+        ``merge`` the targets render with near-duplicates merged.
 
         ``hooks`` (``StudyHooks``): for studies that hold parts of the network fixed."""
         if budget is not None and not isinstance(budget, (GaussianBudget, AutoBudget)):
@@ -450,6 +451,7 @@ class UniqueSplat(nn.Module):
         kept = len(gaussians)
         if isinstance(budget, AutoBudget):
             budget, prune = self._auto_budget(budget, images, context, depth, hooks, prune, aux)
+            aux["auto_total"] = kept  # the Gaussians per target the count chose from
         if budget is not None:
             gaussians, kept = self._budgeted(gaussians, depth, aux, targets, (h, w), v, b, n,
                                              budget)
