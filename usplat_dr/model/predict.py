@@ -8,6 +8,7 @@ keyword arguments: each is easy to pass in the wrong place and the shapes [3, 3]
 are the only other check.
 """
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,8 @@ from torch import Tensor
 from usplat_dr.geometry.cameras import Cameras
 from usplat_dr.model.auto_budget import AutoBudget, make_budget
 from usplat_dr.model.types import Gaussians
+
+log = logging.getLogger(__name__)
 
 #: near/far of the field's released checkpoints (MVSplat's RE10K and ACID: 1 and 100, in the
 #: datasets' units); synthetic scenes of ``usplat synth`` use 0.2 and 20 and record theirs.
@@ -150,6 +153,10 @@ def predict_views(model, images, *, intrinsics, extrinsics, target_intrinsics,
             if isinstance(keep, AutoBudget):  # chosen once: the later chunks reuse it
                 auto_keep = float(out.aux["auto_keep"][0])
                 keep, prune = out.aux["auto_budget"], out.aux["auto_prune"]
+                log.info("the automatic count keeps %.0f%% of the Gaussians (%d of %d per "
+                         "target), %.0f rendered after merging near-duplicates", 100 * auto_keep,
+                         int(out.aux["kept"][0, 0]), int(out.aux["auto_total"]),
+                         float(out.aux["rendered"][0].float().mean()))
             if all_gaussians or not gaussians:
                 gaussians += [out.target(0, i) for i in range(n if all_gaussians else 1)]
             colors.append(out.color[0].clamp(0, 1))
