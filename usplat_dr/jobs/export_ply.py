@@ -7,7 +7,7 @@ import torch
 
 from usplat_dr.data.types import model_inputs
 from usplat_dr.jobs.arguments import non_negative_int, out_file
-from usplat_dr.jobs.render import add_example_arguments, one_example
+from usplat_dr.jobs.render import add_example_arguments, fit_checkpoint, one_example
 from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.model.ply import write_ply
 
@@ -22,6 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    fit_checkpoint(args)
     model, batch = one_example(args)
     with torch.no_grad():
         out = model(*model_inputs(batch, torch.device(args.device)), render=False,

@@ -39,7 +39,12 @@ from usplat_dr.jobs.arguments import (
 )
 from usplat_dr.model.ply import write_ply
 from usplat_dr.model.predict import Prediction
-from usplat_dr.training.checkpoints import depth_range_warning, load, training_image_shape
+from usplat_dr.training.checkpoints import (
+    depth_range_warning,
+    fitting_checkpoint,
+    load,
+    training_image_shape,
+)
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +85,24 @@ def image_shape(args: argparse.Namespace) -> tuple[int, int]:
     if args.image_shape:
         return tuple(args.image_shape)
     return training_image_shape(args.checkpoint, args.trust_checkpoint) or (256, 256)
+
+
+def fit_checkpoint(args: argparse.Namespace, checkpoint: str | None = None) -> str:
+    """The shipped model to use for ``checkpoint`` (default ``--checkpoint``; which becomes it):
+    its sibling trained at the size nearest ``--image-shape``, or with your own ``--images``
+    and no ``--image-shape`` the largest (``fitting_checkpoint``), logged when it is another.
+    With ``--data`` and no ``--image-shape`` the named model, at its own size."""
+    name = args.checkpoint if checkpoint is None else checkpoint
+    own = getattr(args, "images", None) is not None
+    if args.image_shape is None and not own:
+        return name
+    chosen, note = fitting_checkpoint(name, tuple(args.image_shape) if args.image_shape
+                                      else None)
+    if note is not None:
+        log.info("%s", note)
+    if checkpoint is None:
+        args.checkpoint = chosen
+    return chosen
 
 
 def one_example(args: argparse.Namespace) -> tuple:
@@ -153,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
     if args.images is not None and args.data is not None:
         raise ValueError("give --data or --images, not both")
     out = Path(args.out)
+    fit_checkpoint(args)
     if args.data is not None:
         model, batch = one_example(args)
         colors, depths = render_path(model, batch, args.frames, device=args.device,

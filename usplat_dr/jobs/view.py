@@ -42,6 +42,7 @@ from usplat_dr.jobs.render import (
     add_own_views_arguments,
     add_trust_argument,
     check_own_views,
+    fit_checkpoint,
     one_example,
     own_views,
 )
@@ -569,6 +570,10 @@ def scene_from_args(args: argparse.Namespace):
     if args.ply is not None:
         return PlyScene(read_ply(args.ply), tuple(args.image_shape or PLY_IMAGE_SHAPE),
                         f"PLY: {Path(args.ply).name}")
+    compare = compare_checkpoint(args)  # paired by the name asked for, then both fitted
+    fit_checkpoint(args)
+    if compare is not None:
+        compare = fit_checkpoint(args, compare)
     if args.data is not None:
         model, batch = one_example(args)
         inputs = model_inputs(batch, torch.device(args.device))
@@ -579,7 +584,6 @@ def scene_from_args(args: argparse.Namespace):
         views, near, far = own_views(args, model.trained_depth_range)
         images, e, k = views.images, views.extrinsics, views.intrinsics
     models = {label(model, args.checkpoint): model}
-    compare = compare_checkpoint(args)
     if compare is not None:
         other = load(compare, args.device, args.trust_checkpoint)
         models[label(other, compare)] = other

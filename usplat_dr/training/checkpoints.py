@@ -8,7 +8,9 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -541,6 +543,64 @@ def resolve_checkpoint(checkpoint: str | os.PathLike, root: Path = CHECKPOINTS) 
                             f"writes OUTPUT_DIR/checkpoints/last.ckpt; MVSplat's files are "
                             f"re10k.ckpt / acid.ckpt from its release; shipped ones load by "
                             f"name: {names})")
+
+
+#: A shipped name ending in ``_<size>`` is its family's model trained at that size
+#: (``tiny_baseline_128``); the name without it is the family's first (``tiny_baseline``).
+SIZED_NAME = re.compile(r"^(?P<base>.+)_(?P<size>[0-9]+)$")
+
+
+def size_family(name: str, root: Path = CHECKPOINTS) -> dict[int, str]:
+    """``{training size (the shorter side): shipped name}`` of the shipped checkpoint ``name``
+    and its siblings trained at other sizes (``tiny_baseline`` and ``tiny_baseline_128``);
+    ``{}`` when ``name`` is not a shipped name."""
+    if not (root / "manifest.json").is_file():
+        return {}
+    shipped = shipped_checkpoints(root)
+    if name not in shipped:
+        return {}
+    m = SIZED_NAME.match(name)
+    base = m["base"] if m and m["base"] in shipped else name
+    members = [base] + [n for n in shipped
+                        if (mm := SIZED_NAME.match(n)) is not None and mm["base"] == base]
+    family = {}
+    for member in members:
+        shape = training_image_shape(shipped[member])
+        if shape is not None:
+            family.setdefault(min(shape), member)
+    return family
+
+
+def fitting_checkpoint(checkpoint: str | os.PathLike, image_shape: tuple[int, int] | None,
+                       root: Path = CHECKPOINTS) -> tuple[str, str | None]:
+    """The shipped model of ``checkpoint``'s family (``size_family``) that fits a render of
+    ``image_shape``: the one trained nearest its shorter side (in octaves; the larger on a
+    tie), or with ``image_shape=None`` (a user's own photographs, larger than any) the largest;
+    and a line saying so where that is not ``checkpoint``, else ``None``. Files and names
+    without siblings come back as they are.
+
+    Examples:
+        >>> fitting_checkpoint("tiny_full", (64, 64))
+        ('tiny_full', None)
+    """
+    name = str(checkpoint).removesuffix(".pt")
+    if Path(checkpoint).is_file() or len(Path(checkpoint).parts) != 1:
+        return str(checkpoint), None
+    family = size_family(name, root)
+    if len(family) < 2:
+        return str(checkpoint), None
+    if image_shape is None:
+        size = max(family)
+    else:
+        target = min(image_shape)
+        size = min(family, key=lambda s: (abs(math.log2(s / target)), -s))
+    chosen = family[size]
+    if chosen == name:
+        return str(checkpoint), None
+    why = ("your own images" if image_shape is None
+           else f"{image_shape[0]}x{image_shape[1]}")
+    return chosen, (f"using {chosen} (trained at {size}x{size}) for {name}: the shipped size of "
+                    f"that model that fits {why}; name a file to use another")
 
 
 def is_mvsplat_checkpoint(state: dict) -> bool:

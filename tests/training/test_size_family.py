@@ -1,0 +1,71 @@
+"""A shipped model's siblings trained at other sizes: the one that fits a render is chosen
+(``fitting_checkpoint``) and said; files, and names without siblings, stay as named."""
+
+import json
+import logging
+from argparse import Namespace
+
+import pytest
+import torch
+
+from usplat_dr.jobs import render as render_job
+from usplat_dr.training import checkpoints
+from usplat_dr.training.checkpoints import fitting_checkpoint, size_family
+
+
+@pytest.fixture
+def root(tmp_path):
+    """A manifest of a family trained at 64, 128 and 256 (``m``, ``m_128``, ``m_256``), a
+    ``m_stage1`` (not a size), and ``solo``."""
+    entries = []
+    for name, size in (("m", 64), ("m_128", 128), ("m_256", 256), ("m_stage1", 64),
+                       ("solo", 64)):
+        torch.save({"config": {"dataset": {"image_shape": [size, size]}}},
+                   tmp_path / f"{name}.pt")
+        entries.append({"name": name, "file": f"{name}.pt"})
+    (tmp_path / "manifest.json").write_text(json.dumps(entries))
+    return tmp_path
+
+
+def test_the_family_is_the_name_and_its_sized_siblings(root):
+    assert size_family("m", root) == {64: "m", 128: "m_128", 256: "m_256"}
+    assert size_family("m_128", root) == size_family("m", root)
+    assert size_family("m_stage1", root) == {64: "m_stage1"}  # "stage1" is no size
+    assert size_family("nope", root) == {}
+
+
+@pytest.mark.parametrize("shape, expected", [
+    ((64, 64), "m"), ((128, 128), "m_128"), ((100, 200), "m_128"),  # the shorter side: 100
+    ((90, 90), "m"),  # 90: 0.49 octaves above 64, 0.51 below 128
+    ((512, 512), "m_256"), ((16, 16), "m"), (None, "m_256")])  # own photographs: the largest
+def test_the_fitting_size_is_chosen_and_said(root, shape, expected):
+    chosen, note = fitting_checkpoint("m", shape, root)
+    assert chosen == expected
+    assert (note is None) == (expected == "m")
+    if note is not None:
+        assert note.startswith(f"using {expected} (trained at ") and "for m:" in note
+
+
+def test_files_and_lone_names_stay(root):
+    path = str(root / "m.pt")
+    assert fitting_checkpoint(path, (256, 256), root) == (path, None)
+    assert fitting_checkpoint("solo", (256, 256), root) == ("solo", None)
+
+
+def test_commands_use_the_fitting_model_and_say_so(root, monkeypatch, caplog):
+    monkeypatch.setattr(checkpoints, "CHECKPOINTS", root)
+    monkeypatch.setattr(render_job, "fitting_checkpoint",
+                        lambda c, s: fitting_checkpoint(c, s, root))
+    caplog.set_level(logging.INFO, logger="usplat_dr.jobs.render")
+    args = Namespace(checkpoint="m", image_shape=[128, 128], images=None)
+    assert render_job.fit_checkpoint(args) == "m_128" and args.checkpoint == "m_128"
+    assert "using m_128" in caplog.text
+    # --data without --image-shape: the named model at its own size
+    args = Namespace(checkpoint="m", image_shape=None, images=None)
+    assert render_job.fit_checkpoint(args) == "m" and args.checkpoint == "m"
+    # your own images without --image-shape: the largest
+    args = Namespace(checkpoint="m", image_shape=None, images=["a.png", "b.png"])
+    assert render_job.fit_checkpoint(args) == "m_256"
+    # a second model (the viewer's comparison) fitted the same way, --checkpoint left alone
+    args = Namespace(checkpoint="solo", image_shape=[128, 128], images=None)
+    assert render_job.fit_checkpoint(args, "m") == "m_128" and args.checkpoint == "solo"
