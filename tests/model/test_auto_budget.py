@@ -32,21 +32,27 @@ def test_image_psnr_is_the_protocols():
     assert torch.equal(image_psnr(a, b), psnr(a, b))
 
 
-def test_choose_keep_renders_in_ascending_order_and_stops_at_the_first_within():
+def test_choose_keep_goes_down_from_the_largest_and_stops_at_the_first_outside():
     asked = []
-    losses = {0.05: 5.0, 0.1: 0.5, 0.15: 0.1, 0.2: 0.0, 0.3: 0.0, 0.4: 0.0, 0.5: 0.0, 0.7: 0.0}
+    # within 0.2 from 70% down to 15%, then 10% outside; 5% within again (not reached: the
+    # count keeps the smallest budget below which nothing larger fails)
+    losses = {0.05: 0.0, 0.1: 0.5, 0.15: 0.1, 0.2: 0.0, 0.3: 0.0, 0.4: 0.0, 0.5: 0.0, 0.7: 0.0}
 
     def proxy(keep):
         asked.append(keep)
         return losses[keep]
 
     keep, readings = choose_keep(proxy, AutoBudget(tolerance=0.2), None)
-    assert keep == 0.15 and asked == [0.05, 0.1, 0.15]
-    assert readings == {0.05: (5.0, 5.0), 0.1: (0.5, 0.5), 0.15: (0.1, 0.1)}
-    # none within: every Gaussian, after trying them all
+    assert keep == 0.15 and asked == [0.7, 0.5, 0.4, 0.3, 0.2, 0.15, 0.1]
+    assert readings[0.1] == (0.5, 0.5) and 0.05 not in readings
+    # the largest outside: every Gaussian, after one render
     asked.clear()
     assert choose_keep(lambda k: asked.append(k) or 1.0, AutoBudget(), None)[0] == 1.0
-    assert asked == list(AUTO_KEEPS)
+    assert asked == [0.7]
+    # all within: the smallest, after rendering each
+    asked.clear()
+    assert choose_keep(lambda k: asked.append(k) or 0.0, AutoBudget(), None)[0] == 0.05
+    assert asked == list(reversed(AUTO_KEEPS))
 
 
 def test_choose_keep_predicts_through_the_calibration():

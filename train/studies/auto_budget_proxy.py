@@ -14,9 +14,10 @@ the study prints, per tolerance, the mean budget kept and the mean and worst rea
 ``--calibration FILE`` (another set's ``proxy.csv``, say a development set's): the proxy
 calibrated there. Per budget, the real loss predicted by a least-squares line in the proxy
 loss, plus a margin, the ``--quantile`` of that line's residuals on the calibration scenes;
-the count keeps the smallest budget whose predicted loss plus margin is within the tolerance
-(``calibrated_choice``), and the study prints the same table for it, with the mean budget per
-scene kind.
+the count keeps what ``--gaussians auto`` keeps (``calibrated_choice``: the smallest budget
+whose predicted loss plus margin, and every larger one's, is within the tolerance; until
+2026-11-29 the smallest within it wherever it lay, which chose the same on the held-out
+scenes), and the study prints the same table for it, with the mean budget per scene kind.
 
 Writes ``proxy.csv`` (one row per scene and budget) and ``summary.json``.
 """
