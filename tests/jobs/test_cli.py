@@ -251,6 +251,7 @@ def test_gaussians_auto_chooses_per_scene_and_eval_writes_the_choice(one_scene, 
         assert float(r["gaussians_rendered"]) <= expected
     summary = json.loads((ev / "summary.json").read_text())
     assert summary["gaussians"] == {"auto": {"tolerance_db": 0.2, "merge": True}}
+    assert summary["rank_by"] == "dither"  # the automatic count's default ranking
     assert summary["splits"]["standard"]["mean_auto_keep"] == pytest.approx(
         sum(float(r["auto_keep"]) for r in rows if r["split"] == "standard")
         / sum(r["split"] == "standard" for r in rows))

@@ -225,7 +225,8 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
         variant=model.cfg.variant, prune=prune.label() if prune is not None else "none",
         gaussians=budget_record(keep),
         rank_by=None if keep is None else (keep.rank_by or (
-            "learned" if getattr(model, "importance", None) is not None else "dither")),
+            "learned" if getattr(model, "importance", None) is not None
+            and not isinstance(keep, AutoBudget) else "dither")),  # auto: dither by default
         precision=getattr(model, "inference_precision", "float32"),
         image_shape=list(dataset.get("image_shape", ())),
         time_per_scene_s=statistics.median(steady) if steady else None,

@@ -6,8 +6,8 @@ model's Gaussians is predicted, without the target images, to stay within a tole
 
 1. **The proxy.** The context views are rendered from the scene's own Gaussians (the context
    cameras as targets), with all of them and with the budgets of ``AUTO_KEEPS`` from the
-   largest down, ranked as the budget would rank them; the proxy loss at a budget is PSNR(all) - PSNR(K),
-   each against the context view's own image, in dB.
+   largest down, ranked as the budget would rank them; the proxy loss at a budget is
+   PSNR(all) - PSNR(K), each against the context view's own image, in dB.
 2. **The prediction.** A context view sees each Gaussian it put on its own pixels, so it
    overstates what a target loses (about 8x near 50% on the held-out synthetic set). A
    ``Calibration`` made on scenes that are not evaluated (a development set) maps it, per
