@@ -202,3 +202,18 @@ def test_shipped_models_carry_their_calibration(model):
     assert model.auto_calibration["dither"].data.startswith("outputs/big/test2000")
     budget = load("tiny_full_budget")
     assert set(budget.auto_calibration) == {"dither", "learned"}
+
+
+def test_a_checkpoint_file_of_your_own_carries_its_calibration(tmp_path):
+    from usplat_dr.training.checkpoints import CHECKPOINTS
+
+    state = torch.load(CHECKPOINTS / "tiny_baseline.pt", weights_only=True)
+    mine = tmp_path / "mine.pt"
+    torch.save(state, mine)
+    assert load(mine).auto_calibration == {}  # outside checkpoints/: no manifest entry
+    cal = Calibration("dither", ((0.5, 0.1, 0.5, 0.2),), 0.9, "my dev set, 40 scenes")
+    torch.save({**state, "auto_budget": [cal.as_dict()]}, mine)
+    assert load(mine).auto_calibration == {"dither": cal}
+    torch.save({**state, "auto_budget": [{"rank_by": "dither"}]}, mine)
+    with pytest.raises(ValueError, match="mine.pt'?: auto_budget: not an automatic count's"):
+        load(mine)
