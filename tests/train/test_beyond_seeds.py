@@ -33,3 +33,27 @@ def test_seeds_stop_at_their_kept_step_with_targets_beyond(tmp_path, trainer_set
     again = subprocess.run(["bash", str(SCRIPT), "3"], env=env, capture_output=True,
                            text=True, timeout=600, check=False)
     assert again.returncode == 0 and "already kept" in again.stdout
+
+
+@pytest.mark.parametrize("shape, expected", [("128 128", "dataset.image_shape=[128,128]"),
+                                             ("", None)])
+def test_the_start_and_image_shape_are_passed_on(tmp_path, shape, expected):
+    env = {**os.environ, "OUT": str(tmp_path / "runs"), "DRY_RUN": "1", "ARM": "full",
+           "INIT": "tiny_baseline_128", "IMAGE_SHAPE": shape, "DATA": "outputs/big128/x"}
+    proc = subprocess.run(["bash", str(SCRIPT), "0", "1"], env=env, capture_output=True,
+                          text=True, timeout=60, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = sorted(proc.stdout.splitlines())
+    assert [line.split(":")[0] for line in lines] == ["seed 0", "seed 1"]
+    for line in lines:
+        assert "model.init_from=tiny_baseline_128 model.variant=full" in line
+        assert "dataset.roots=[outputs/big128/x]" in line
+        assert (expected in line) if expected else "dataset.image_shape" not in line
+    assert not (tmp_path / "runs" / "full_seed_0").exists()  # nothing ran
+
+
+def test_a_malformed_image_shape_is_refused(tmp_path):
+    env = {**os.environ, "OUT": str(tmp_path), "DRY_RUN": "1", "IMAGE_SHAPE": "128"}
+    proc = subprocess.run(["bash", str(SCRIPT), "0"], env=env, capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert proc.returncode == 2 and "IMAGE_SHAPE must be two numbers" in proc.stdout

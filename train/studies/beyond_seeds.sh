@@ -12,19 +12,30 @@
 # (branch, the default: the view-specific branch alone from tiny_full; or baseline: all of
 # tiny_baseline trained the same way at peak lr 2e-4, the control (a), runs named
 # baseline_seed_N; or full: the paper's protocol, (c) from tiny_baseline with every weight
-# trained and its hypernetworks' outputs starting at zero, runs named full_seed_N).
+# trained and its hypernetworks' outputs starting at zero, runs named full_seed_N), INIT (the
+# baseline and full arms' start, default tiny_baseline; the 128x128 verdict's: the 128x128 (a)),
+# IMAGE_SHAPE ("H W", default the data's config: 64 64), DRY_RUN=1 (print each seed's command,
+# run nothing).
 set -uo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 cd "$ROOT"
 PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/beyond}; STOP=${STOP:-300}; BEYOND=${BEYOND:-4}
 DATA=${DATA:-outputs/big/train480}; JOBS=${JOBS:-2}; ARM=${ARM:-branch}
+INIT=${INIT:-tiny_baseline}; IMAGE_SHAPE=${IMAGE_SHAPE:-}; DRY_RUN=${DRY_RUN:-0}
+shape=()
+if [ -n "$IMAGE_SHAPE" ]; then
+  read -r h w extra <<<"$IMAGE_SHAPE"
+  [[ "$h" =~ ^[0-9]+$ && "$w" =~ ^[0-9]+$ && -z "${extra:-}" ]] || {
+    echo "IMAGE_SHAPE must be two numbers, H W (e.g. \"128 128\"), got '$IMAGE_SHAPE'"; exit 2; }
+  shape=("dataset.image_shape=[$h,$w]")
+fi
 case $ARM in
   branch) arm=(model.init_from=tiny_full train.trainable=view_specific optimizer.lr=1e-3
                model.open_gate_std=0.02 model.overrides.view_features=primary); prefix=seed ;;
-  baseline) arm=(model.init_from=tiny_baseline model.variant=baseline optimizer.lr=2e-4)
+  baseline) arm=(model.init_from="$INIT" model.variant=baseline optimizer.lr=2e-4)
             prefix=baseline_seed ;;
-  full) arm=(model.init_from=tiny_baseline model.variant=full optimizer.lr=2e-4)
+  full) arm=(model.init_from="$INIT" model.variant=full optimizer.lr=2e-4)
         prefix=full_seed ;;
   *) echo "ARM must be branch, baseline or full, got $ARM"; exit 2 ;;
 esac
@@ -35,12 +46,13 @@ run_seed() {
   local kept
   kept=$(printf "%s/checkpoints/step_%07d.ckpt" "$dir" "$STOP")
   [ -f "$kept" ] && { echo "seed $seed: step $STOP already kept"; return 0; }
-  "$PY" -m usplat_dr train --config synthetic_tiny_depth.yaml "dataset.roots=[$DATA]" \
-    device=cpu threads=1 seed="$seed" dataset.overrides.seed="$seed" train.progress=false \
-    train.steps=6000 train.checkpoint_every=50 train.keep_every=100 train.validate_every=100 \
-    train.log_every=10 data_loader.batch_size=8 "${arm[@]}" \
-    dataset.view_sampler.max_distance_beyond_context_views="$BEYOND" \
-    output_dir="$dir" --resume >>"$dir.log" 2>&1 &
+  local cmd=("$PY" -m usplat_dr train --config synthetic_tiny_depth.yaml "dataset.roots=[$DATA]"
+    "${shape[@]}" device=cpu threads=1 seed="$seed" dataset.overrides.seed="$seed"
+    train.progress=false train.steps=6000 train.checkpoint_every=50 train.keep_every=100
+    train.validate_every=100 train.log_every=10 data_loader.batch_size=8 "${arm[@]}"
+    dataset.view_sampler.max_distance_beyond_context_views="$BEYOND" output_dir="$dir" --resume)
+  if [ "$DRY_RUN" = 1 ]; then echo "seed $seed: ${cmd[*]}"; return 0; fi
+  "${cmd[@]}" >>"$dir.log" 2>&1 &
   local pid=$!
   while kill -0 "$pid" 2>/dev/null && [ ! -f "$kept" ]; do sleep 5; done
   kill -INT "$pid" 2>/dev/null
