@@ -267,8 +267,8 @@ def test_report_says_what_the_automatic_count_keeps_and_loses(tmp_path):
                                     "mean_gaussians_total": 2048.0}}}
     text = "\n".join(auto_lines(dataclasses.replace(results, auto=auto)))
     # the shipped (c)'s made-up standard PSNR is 20.0 + 3 (base, baseline, agnostic, full)
-    assert ("chose 90% of (c)'s Gaussians per scene on average and rendered 75% after merging "
-            "near-duplicates: 21.25 dB against 23.00 dB with all of them (3 scenes") in text
+    assert ("chose 90% of (c)'s Gaussians per scene on average and rendered 75% after culling "
+            "and merging: 21.25 dB against 23.00 dB with all of them (3 scenes") in text
     assert auto_lines(results) == []
 
 

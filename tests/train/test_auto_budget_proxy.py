@@ -126,3 +126,22 @@ def test_ship_records_the_calibration_in_the_manifest_entry(tmp_path):
     assert Calibration.from_dict(got["dither"]) == cal
     with pytest.raises(ValueError, match="--ship nope: no such entry"):
         study.ship("nope", cal, root=tmp_path)
+
+
+def test_a_calibration_of_another_model_or_ranking_is_refused(tmp_path, capsys):
+    import json
+    cal_dir = tmp_path / "cal"
+    cal_dir.mkdir()
+    write_proxy_csv(cal_dir / "proxy.csv", {f"object_{k:03d}": {1.0: (0.0, 0.0), 0.5: (k, k)}
+                                            for k in range(4)})
+    (cal_dir / "summary.json").write_text(json.dumps({"checkpoint": "tiny_full",
+                                                      "rank_by": "dither"}))
+    out = tmp_path / "out"
+    for extra, needle in ((["--checkpoint", "tiny_full", "--rank-by", "learned"],
+                           "rank_by 'dither', not 'learned'"),
+                          (["--checkpoint", "tiny_full", "--ship", "tiny_full_budget"],
+                           "checkpoint 'tiny_full', not 'tiny_full_budget'")):
+        with pytest.raises(SystemExit):
+            study.main(["--data", "unused", "--reuse", "--calibration",
+                        str(cal_dir / "proxy.csv"), "--out", str(out), *extra])
+        assert needle in capsys.readouterr().err

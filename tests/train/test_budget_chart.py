@@ -27,9 +27,9 @@ def test_eval_point_matches_scenes_and_counts_what_was_rendered(tmp_path):
     # scene c was not evaluated with the budget: left out; a loses 0.5 dB, b gains 0.1
     write(tmp_path / "auto", [
         {"split": "standard", "scene": "a", "psnr": 24.5, "auto_keep": 0.5,
-         "gaussians_kept": 4096, "gaussians_rendered": 3000.0},
+         "gaussians_kept": 4096, "gaussians_rendered": 3000.0, "gaussians_total": 8192},
         {"split": "standard", "scene": "b", "psnr": 20.1, "auto_keep": 1.0,
-         "gaussians_kept": 8192, "gaussians_rendered": 7000.0}])
+         "gaussians_kept": 8192, "gaussians_rendered": 7000.0, "gaussians_total": 8192}])
     kept, loss, worst, n = chart.eval_point(tmp_path / "all", tmp_path / "auto")
     assert n == 2
     assert kept == pytest.approx((3000 + 7000) / 2 / 8192)

@@ -46,10 +46,20 @@ def test_the_fitting_size_is_chosen_and_said(root, shape, expected):
         assert note.startswith(f"using {expected} (trained at ") and "for m:" in note
 
 
-def test_files_and_lone_names_stay(root):
+def test_files_lone_names_and_sized_names_stay(root):
     path = str(root / "m.pt")
     assert fitting_checkpoint(path, (256, 256), root) == (path, None)
     assert fitting_checkpoint("solo", (256, 256), root) == ("solo", None)
+    # a name that gives a size is what the user asked for
+    assert fitting_checkpoint("m_128", (64, 64), root) == ("m_128", None)
+    assert fitting_checkpoint("m_256", None, root) == ("m_256", None)
+
+
+def test_an_unreadable_sibling_is_left_out_and_said(root, caplog):
+    (root / "m_256.pt").write_text("a Git LFS pointer, not a checkpoint")
+    assert size_family("m", root) == {64: "m", 128: "m_128"}
+    assert "leaving m_256 out of m's sizes" in caplog.text
+    assert fitting_checkpoint("m", None, root)[0] == "m_128"
 
 
 def test_commands_use_the_fitting_model_and_say_so(root, monkeypatch, caplog):

@@ -77,8 +77,9 @@ def read_proxy_csv(path) -> dict:
 
 def calibrated_choice(found: dict, calibration: Calibration, tolerance: float) -> float:
     """The budget the library's automatic count chooses for a scene measured as ``found``
-    ({keep: (proxy loss, real loss)}): the smallest whose predicted loss is within
-    ``tolerance``, 1 (every Gaussian) where none is."""
+    ({keep: (proxy loss, real loss)}): the smallest whose predicted loss, and every larger
+    one's, is within ``tolerance`` (``auto_budget.choose_keep``), 1 (every Gaussian) where the
+    largest's is not."""
     keeps = tuple(sorted(k for k in found if k < 1.0))
     return choose_keep(lambda k: found[k][0], AutoBudget(tolerance, keeps=keeps),
                        calibration)[0]
@@ -153,6 +154,15 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.ship is not None and args.calibration is None:
         p.error("--ship needs --calibration (the development set's proxy.csv to fit)")
+    if args.calibration is not None:
+        made = args.calibration.parent / "summary.json"
+        made = json.loads(made.read_text()) if made.is_file() else {}
+        for key, mine in (("checkpoint", args.ship or args.checkpoint),
+                          ("rank_by", args.rank_by)):
+            if key in made and made[key] != mine:
+                p.error(f"--calibration {args.calibration} was measured with {key} "
+                        f"{made[key]!r}, not {mine!r}: calibrate the model and ranking you "
+                        f"use (or ship)")
     if args.calibration is not None and not args.calibration.is_file():
         p.error(f"--calibration {args.calibration}: no such file (a proxy.csv this study "
                 f"wrote for another set)")
@@ -178,7 +188,8 @@ def main(argv=None) -> int:
                  summary, "proxy")
     if args.calibration is not None:
         calibration = Calibration.fit(read_proxy_csv(args.calibration), args.quantile,
-                                      args.rank_by, calibration_data(args.calibration))
+                                      args.rank_by, calibration_data(args.calibration),
+                                      args.size)
         summary["calibration"] = {"file": str(args.calibration), **calibration.as_dict()}
         print(f"\nCalibrated on {args.calibration} (line per budget, margin = the "
               f"{args.quantile:g} quantile of its residuals):")

@@ -51,9 +51,8 @@ def eval_point(all_dir: Path, auto_dir: Path) -> tuple[float, float, float, int]
     if not common:
         raise ValueError(f"{all_dir} and {auto_dir} share no scene")
     loss = [float(a[k]["psnr"]) - float(b[k]["psnr"]) for k in common]
-    kept = [float(b[k]["gaussians_rendered"]) for k in common]
-    total = max(float(b[k]["gaussians_kept"]) / float(b[k]["auto_keep"]) for k in common)
-    return statistics.mean(kept) / total, statistics.mean(loss), max(loss), len(common)
+    kept = [float(b[k]["gaussians_rendered"]) / float(b[k]["gaussians_total"]) for k in common]
+    return statistics.mean(kept), statistics.mean(loss), max(loss), len(common)
 
 
 def main(argv=None) -> int:

@@ -15,6 +15,7 @@ from usplat_dr.jobs.arguments import (
     DATASET_HELP,
     DEVICE_HELP,
     add_budget_arguments,
+    check_budget_arguments,
     out_folder,
 )
 from usplat_dr.jobs.render import add_image_shape_argument, add_trust_argument, image_shape
@@ -79,6 +80,7 @@ def _onednn_has_bfloat16() -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_budget_arguments(args)
     indices = None
     if args.index:
         bad = [i for i in args.index if "=" not in i or not all(i.split("=", 1))]

@@ -6,7 +6,7 @@ import argparse
 import torch
 
 from usplat_dr.data.types import model_inputs
-from usplat_dr.jobs.arguments import non_negative_int, out_file
+from usplat_dr.jobs.arguments import check_budget_arguments, non_negative_int, out_file
 from usplat_dr.jobs.render import add_example_arguments, fit_checkpoint, one_example
 from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.model.ply import write_ply
@@ -22,6 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_budget_arguments(args)
     fit_checkpoint(args)
     model, batch = one_example(args)
     with torch.no_grad():
@@ -34,7 +35,8 @@ def run(args: argparse.Namespace) -> int:
     path = write_ply(args.out, out.target(0, args.target), min_opacity=args.min_opacity)
     kept = "" if args.gaussians is None else f" ({int(out.aux['kept'][0, args.target])} kept)"
     if "auto_keep" in out.aux:
-        kept = kept[:-1] + f", {float(out.aux['auto_keep'][0]):.0%} chosen by the automatic count)"
+        kept = (kept[:-1] + f", {float(out.aux['auto_keep'][0]):.0%} chosen by the automatic "
+                "count; the PLY holds them before the render's merging)")
     print(f"wrote {path}: the Gaussians predicted for target {args.target} of "
           f"{batch['scene'][0]}{kept}")
     return 0

@@ -34,6 +34,7 @@ from usplat_dr.jobs.arguments import (
     DEVICE_HELP,
     add_budget_arguments,
     at_least,
+    check_budget_arguments,
     out_folder,
     positive_int,
 )
@@ -175,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
                          "--cameras FILE (your own images)")
     if args.images is not None and args.data is not None:
         raise ValueError("give --data or --images, not both")
+    check_budget_arguments(args)
     out = Path(args.out)
     fit_checkpoint(args)
     if args.data is not None:

@@ -323,7 +323,7 @@ def allocation_lines(r: DemoResults) -> list[str]:
 def auto_lines(r: DemoResults) -> list[str]:
     """What the automatic count (``--gaussians auto``) kept and lost in (c) on the standard
     split, against all Gaussians (the shipped (c)'s evaluation); nothing without it."""
-    if r.auto is None:
+    if r.auto is None or not r.auto["splits"]["standard"]["scenes"]:
         return []
     split = r.auto["splits"]["standard"]
     every = r.summaries["full"]["splits"]["standard"]["psnr"]
@@ -331,7 +331,7 @@ def auto_lines(r: DemoResults) -> list[str]:
     return [(f"The automatic count (`--gaussians auto`, tolerance "
              f"{r.auto['gaussians']['auto']['tolerance_db']:g} dB; docs/model.md) chose "
              f"{split['mean_auto_keep']:.0%} of (c)'s Gaussians per scene on average and "
-             f"rendered {rendered:.0%} after merging near-duplicates: {split['psnr']:.2f} dB "
+             f"rendered {rendered:.0%} after culling and merging: {split['psnr']:.2f} dB "
              f"against {every:.2f} dB with all of them ({split['scenes']} scenes; per scene in "
              f"`eval_auto_full/per_scene.csv`)."), ""]
 

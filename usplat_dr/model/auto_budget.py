@@ -55,7 +55,9 @@ class Calibration:
     """The proxy loss mapped to the target's loss, per budget: ``fits`` holds (keep,
     intercept, slope, margin) rows; the predicted loss at ``keep`` is intercept + slope x
     proxy + margin. ``rank_by``: the ranking it was measured with; ``quantile``: the residual
-    quantile the margins are; ``data``: the development set it was fitted on.
+    quantile the margins are; ``data``: the development set it was fitted on; ``size``: the
+    shorter side of the images it was measured at (``None``: not recorded), where a render of
+    another size is warned about.
 
     Examples:
         >>> c = Calibration("dither", ((0.5, 0.1, 0.5, 0.2),), 0.9, "dev")
@@ -67,11 +69,15 @@ class Calibration:
     fits: tuple[tuple[float, float, float, float], ...]
     quantile: float
     data: str
+    size: int | None = None
 
     def __post_init__(self):
         if self.rank_by not in RANKINGS:
             raise ValueError(f"Calibration.rank_by must be one of {RANKINGS}, got "
                              f"{self.rank_by!r}")
+        if not self.fits:
+            raise ValueError("Calibration.fits must hold at least one (keep, intercept, slope, "
+                             "margin) row")
         for row in self.fits:
             if len(row) != 4 or not all(isinstance(x, numbers.Real) and math.isfinite(x)
                                         for x in row) or not 0 < row[0] < 1:
@@ -88,23 +94,26 @@ class Calibration:
 
     def as_dict(self) -> dict:
         return {"rank_by": self.rank_by, "quantile": self.quantile, "data": self.data,
-                "fits": [list(row) for row in self.fits]}
+                "size": self.size, "fits": [list(row) for row in self.fits]}
 
     @staticmethod
     def from_dict(d: dict, where: str = "calibration") -> "Calibration":
         """The calibration a manifest entry or checkpoint records (``as_dict``'s form); a
         malformed one is a ``ValueError`` naming ``where``."""
         try:
+            size = d.get("size")
             return Calibration(str(d["rank_by"]), tuple(tuple(float(x) for x in row)
                                                         for row in d["fits"]),
-                               float(d["quantile"]), str(d.get("data", "")))
+                               float(d["quantile"]), str(d.get("data", "")),
+                               None if size is None else int(size))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{where}: not an automatic count's calibration ({{'rank_by', "
                              f"'quantile', 'data', 'fits': [[keep, intercept, slope, margin], "
                              f"...]}}): {e}") from e
 
     @staticmethod
-    def fit(per_scene: dict, quantile: float, rank_by: str, data: str) -> "Calibration":
+    def fit(per_scene: dict, quantile: float, rank_by: str, data: str,
+            size: int | None = None) -> "Calibration":
         """Fitted on ``per_scene`` ({scene: {keep: (proxy loss, target loss)}}, a development
         set's): per budget below 1, the least-squares line of the target loss in the proxy
         loss and the ``quantile`` of its residuals (target - line) as the margin."""
@@ -124,7 +133,7 @@ class Calibration:
             residual = ys - design @ coef
             rows.append((float(keep), float(coef[0]), float(coef[1]),
                          float(torch.quantile(residual, quantile))))
-        return Calibration(rank_by, tuple(rows), quantile, data)
+        return Calibration(rank_by, tuple(rows), quantile, data, size)
 
 
 @dataclass(frozen=True)
@@ -215,7 +224,7 @@ def choose_keep(proxy_loss: Callable[[float], float], auto: AutoBudget,
         predicted = None if calibration is None else calibration.predicted(keep, proxy)
         predicted = proxy if predicted is None else predicted
         readings[keep] = (proxy, predicted)
-        if predicted > auto.tolerance:
+        if not predicted <= auto.tolerance:  # NaN (a reading that failed) stops it too
             break
         chosen = keep
     return chosen, readings

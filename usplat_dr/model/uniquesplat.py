@@ -282,7 +282,7 @@ class UniqueSplat(nn.Module):
         #: The automatic count's calibrations by ranking (model/auto_budget.py), from the
         #: loaded checkpoint or its manifest entry; empty: the proxy uncalibrated.
         self.auto_calibration: dict[str, Calibration] = {}
-        self._warned_uncalibrated = False
+        self._warned_auto: set[str] = set()  # the automatic count's warnings, once each
         self.agnostic = self.specific = None
         if cfg.variant == "baseline":
             return
@@ -475,7 +475,7 @@ class UniqueSplat(nn.Module):
                      ) -> tuple[GaussianBudget | None, PruneSettings | None]:
         """``forward``'s automatic count (model/auto_budget.py): the budget it chose for this
         scene (``None``: every Gaussian) and the pruning the targets render with; ``aux``
-        gets ``auto_keep`` and ``auto_readings``."""
+        gets ``auto_keep``, ``auto_readings``, ``auto_budget`` and ``auto_prune``."""
         if self.training:
             raise ValueError("budget=AutoBudget(...) chooses a count at inference: call "
                              "model.eval() first (training takes a GaussianBudget)")
@@ -491,12 +491,19 @@ class UniqueSplat(nn.Module):
             raise ValueError(f"AutoBudget.calibration was measured with rank_by="
                              f"{calibration.rank_by!r}, not {rank_by!r}: pass that ranking or "
                              f"a calibration of this one")
-        if calibration is None and not self._warned_uncalibrated:
-            self._warned_uncalibrated = True
+        if calibration is None and f"none {rank_by}" not in self._warned_auto:
+            self._warned_auto.add(f"none {rank_by}")
             log.warning("no calibration of the automatic count for this model and rank_by=%r: "
                         "the context views' own loss is the prediction, which overstates the "
                         "targets' and keeps more Gaussians than needed; make one with "
                         "train/studies/auto_budget_proxy.py (docs/model.md)", rank_by)
+        size = min(images.shape[-2:])
+        if (calibration is not None and calibration.size not in (None, size)
+                and f"size {rank_by}" not in self._warned_auto):
+            self._warned_auto.add(f"size {rank_by}")
+            log.warning("the automatic count's calibration (rank_by=%r) was measured at %d "
+                        "pixels a side, these images are %d: its prediction may be off; "
+                        "calibrate at this size (docs/model.md)", rank_by, calibration.size, size)
         inner = StudyHooks(encoding=depth)
 
         def context_psnr(budget: GaussianBudget | None) -> float:
@@ -733,9 +740,9 @@ class UniqueSplat(nn.Module):
 
     def predict(self, images, *, intrinsics, extrinsics, target_intrinsics, target_extrinsics,
                 near=DEFAULT_NEAR, far=DEFAULT_FAR, chunk: int = 8,
-                budget: float | int | str | None = None,  # noqa: PYI041 (beartype: int is no float)
+                budget: float | int | str | GaussianBudget | AutoBudget | None = None,  # noqa: PYI041
                 rank_by: str | None = None, all_gaussians: bool = True,
-                tolerance: float | None = None) -> Prediction:
+                tolerance: float | int | None = None) -> Prediction:  # noqa: PYI041
         """Novel views from a user's own images: the Gaussians, colour and depth of each
         target camera (a ``Prediction``), predicted in evaluation mode without gradients.
 

@@ -565,7 +565,11 @@ def size_family(name: str, root: Path = CHECKPOINTS) -> dict[int, str]:
                         if (mm := SIZED_NAME.match(n)) is not None and mm["base"] == base]
     family = {}
     for member in members:
-        shape = training_image_shape(shipped[member])
+        try:
+            shape = training_image_shape(shipped[member])
+        except (OSError, ValueError, RuntimeError) as e:  # a sibling that cannot be read
+            log.warning("leaving %s out of %s's sizes: %s", member, base, e)
+            continue
         if shape is not None:
             family.setdefault(min(shape), member)
     return family
@@ -576,15 +580,17 @@ def fitting_checkpoint(checkpoint: str | os.PathLike, image_shape: tuple[int, in
     """The shipped model of ``checkpoint``'s family (``size_family``) that fits a render of
     ``image_shape``: the one trained nearest its shorter side (in octaves; the larger on a
     tie), or with ``image_shape=None`` (a user's own photographs, larger than any) the largest;
-    and a line saying so where that is not ``checkpoint``, else ``None``. Files and names
-    without siblings come back as they are.
+    and a line saying so where that is not ``checkpoint``, else ``None``. Files, names without
+    siblings and names that give a size themselves (``tiny_baseline_128``) come back as they
+    are.
 
     Examples:
         >>> fitting_checkpoint("tiny_full", (64, 64))
         ('tiny_full', None)
     """
     name = str(checkpoint).removesuffix(".pt")
-    if Path(checkpoint).is_file() or len(Path(checkpoint).parts) != 1:
+    if (Path(checkpoint).is_file() or len(Path(checkpoint).parts) != 1
+            or SIZED_NAME.match(name)):
         return str(checkpoint), None
     family = size_family(name, root)
     if len(family) < 2:
