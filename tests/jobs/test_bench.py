@@ -130,3 +130,31 @@ def test_measure_sweeps_gaussian_budgets_beside_pruning(tmp_path, caplog):
         header = next(csv.reader(f))
     assert {"budget_fraction", "rank_by", "split", "render_time_per_view_ms"} <= set(header)
     assert (tmp_path / "bench" / "bench.png").stat().st_size > 0
+
+
+def test_measure_times_the_automatic_count_beside_fixed_budgets(tmp_path, caplog):
+    """``--gaussians ...,auto``: a ``dither-auto`` row per model, rendered as the count renders
+    (its budget, culled and merged), its kept fraction a real fraction of the Gaussians, and
+    the results written."""
+    import logging
+
+    from usplat_dr.data.synth import synthesize
+    from usplat_dr.jobs.bench import measure, write_results
+    from usplat_dr.training.checkpoints import load
+
+    caplog.set_level(logging.ERROR, logger="usplat_dr.model.uniquesplat")
+    root = tmp_path / "data"
+    synthesize(root, scenes=1, frames=10, resolution=(32, 32), seed=8, spp=4, stage="test",
+               previews=0, progress=False, kinds=("indoor",))
+    a = BenchConfig("tiny", "baseline")
+    rows = measure({a: load("tiny_baseline")}, root, 32, render_sizes=[32],
+                   prunes={"all": None}, progress=False, gaussians=(0.5, "auto"),
+                   rank_by=("dither",))
+    by = {r["prune"]: r for r in rows}
+    assert sorted(by) == ["all", "dither-auto", "dither50%"]
+    auto = by["dither-auto"]
+    assert auto["rank_by"] == "dither" and 0 < auto["kept_fraction"] <= 1
+    # culled and merged: fewer than all 2 x 32 x 32, whatever budget the count chose
+    assert auto["gaussians_per_view"] < 2 * 32 * 32
+    decision = write_results(rows, 32, tmp_path / "bench")
+    assert "dither-auto" in decision["budgets"]
