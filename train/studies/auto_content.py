@@ -20,7 +20,7 @@ import torch
 import usplat_dr  # noqa: F401  (libLLVM first)
 from usplat_dr.data.synth.render import TEXTURED
 from usplat_dr.evaluation import held_out_scenes, load_example
-from usplat_dr.io import atomic_open
+from usplat_dr.io import save_figure
 
 
 def spearman(xs: list[float], ys: list[float]) -> float:
@@ -104,10 +104,7 @@ def main(argv=None) -> int:
     ax.set_title("--gaussians auto per held-out scene (64x64, seed 5000)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_open(args.out, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
-    print(f"wrote {args.out}")
+    print(f"wrote {save_figure(fig, args.out)}")
     return 0
 
 

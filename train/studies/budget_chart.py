@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from usplat_dr.io import atomic_open
+    from usplat_dr.io import save_figure
 
     other = json.loads((HERE / "bound_and_merge.json").read_text())
     lines = {
@@ -105,10 +105,7 @@ def main(argv=None) -> int:
     ax.set_title("Held-out synthetic scenes, 64x64 (seed 5000, standard split)")
     ax.legend(fontsize=7.5)
     fig.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_open(args.out, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
-    print(f"wrote {args.out}")
+    print(f"wrote {save_figure(fig, args.out)}")
     return 0
 
 

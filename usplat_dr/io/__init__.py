@@ -2,8 +2,8 @@
 (``checkpoint_files``), PNGs and contact sheets (``images``), videos (``video``). The atomic
 writers and the safe reader are re-exported: ``from usplat_dr.io import write_json``."""
 
-from usplat_dr.io.atomic import atomic_open, torch_save, write_json
+from usplat_dr.io.atomic import atomic_open, save_figure, torch_save, write_json
 from usplat_dr.io.checkpoint_files import UntrustedCheckpointError, load_torch_file
 
-__all__ = ["UntrustedCheckpointError", "atomic_open", "load_torch_file", "torch_save",
-           "write_json"]
+__all__ = ["UntrustedCheckpointError", "atomic_open", "load_torch_file", "save_figure",
+           "torch_save", "write_json"]

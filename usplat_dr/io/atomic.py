@@ -127,3 +127,16 @@ class _WriteErrors:
 
     def flush(self) -> None:
         self.f.flush()
+
+
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """A matplotlib figure written atomically as a PNG at 110 dpi (the project's charts),
+    its folder made, the figure closed; the path."""
+    import matplotlib.pyplot as plt  # only here: the caller has matplotlib
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+    return path
