@@ -504,11 +504,22 @@ class UniqueSplat(nn.Module):
             log.warning("the automatic count's calibration (rank_by=%r) was measured at %d "
                         "pixels a side, these images are %d: its prediction may be off; "
                         "calibrate at this size (docs/model.md)", rank_by, calibration.size, size)
-        inner = StudyHooks(encoding=depth)
+        # The context views as targets: their Gaussians predicted once (the heads do not
+        # depend on the budget), then each budget selected from them and rendered.
+        v, (h, w) = images.shape[1], images.shape[-2:]
+        with torch.no_grad():
+            own = self.forward(images, context, context, hooks=StudyHooks(encoding=depth),
+                               render=False)
 
         def context_psnr(budget: GaussianBudget | None) -> float:
             with torch.no_grad():
-                out = self.forward(images, context, context, hooks=inner, budget=budget)
+                gaussians, aux_k = own.gaussians, {}
+                if budget is not None:
+                    gaussians, _ = self._budgeted(gaussians, depth, aux_k, context, (h, w), v,
+                                                  1, v, budget)
+                out = UniqueSplatOutput(gaussians=gaussians, num_targets=v,
+                                        per_target=own.per_target, aux=aux_k)
+                self.render_targets(out, context, (h, w), prune=self.inference_prune)
             return float(image_psnr(out.color, images).mean())
 
         reference = context_psnr(None)
