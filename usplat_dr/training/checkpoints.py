@@ -245,10 +245,7 @@ def training_depth_range(checkpoint: str | os.PathLike, trust: bool = False
 
 def _depth_range(path: Path, state: dict) -> list[float] | None:
     """``training_depth_range`` of the checkpoint ``state`` read from ``path``."""
-    found = state.get("depth_range")
-    if found is None and path.parent.resolve() == CHECKPOINTS.resolve():
-        entries = json.loads((CHECKPOINTS / "manifest.json").read_text())
-        found = next((e.get("depth_range") for e in entries if e.get("file") == path.name), None)
+    found = _recorded(path, state, "depth_range")
     if found is None:
         return None
     if (not isinstance(found, (list, tuple)) or len(found) != 4
@@ -258,14 +255,21 @@ def _depth_range(path: Path, state: dict) -> list[float] | None:
     return [float(x) for x in found]
 
 
+def _recorded(path: Path, state: dict, key: str):
+    """``key`` of a checkpoint ``state`` read from ``path``: the file's own value, else a
+    shipped file's manifest entry's, else ``None``."""
+    found = state.get(key)
+    if found is None and path.parent.resolve() == CHECKPOINTS.resolve():
+        entries = json.loads((CHECKPOINTS / "manifest.json").read_text())
+        found = next((e.get(key) for e in entries if e.get("file") == path.name), None)
+    return found
+
+
 def _auto_calibration(path: Path, state: dict) -> dict[str, Calibration]:
     """The automatic count's calibrations ({rank_by: Calibration}) of the checkpoint
     ``state`` read from ``path``: the file's ``auto_budget`` (a list of
     ``Calibration.as_dict()``), else a shipped file's manifest entry's, else none."""
-    found = state.get("auto_budget")
-    if found is None and path.parent.resolve() == CHECKPOINTS.resolve():
-        entries = json.loads((CHECKPOINTS / "manifest.json").read_text())
-        found = next((e.get("auto_budget") for e in entries if e.get("file") == path.name), None)
+    found = _recorded(path, state, "auto_budget")
     if found is None:
         return {}
     if not isinstance(found, list):
