@@ -5,9 +5,11 @@ import json
 import logging
 from argparse import Namespace
 
+import numpy as np
 import pytest
 import torch
 
+from usplat_dr.data.chunks import stored_image_shape
 from usplat_dr.jobs import render as render_job
 from usplat_dr.training import checkpoints
 from usplat_dr.training.checkpoints import fitting_checkpoint, size_family
@@ -70,7 +72,7 @@ def test_commands_use_the_fitting_model_and_say_so(root, monkeypatch, caplog):
     args = Namespace(checkpoint="m", image_shape=[128, 128], images=None)
     assert render_job.fit_checkpoint(args) == "m_128" and args.checkpoint == "m_128"
     assert "using m_128" in caplog.text
-    # --data without --image-shape: the named model at its own size
+    # no --image-shape and no data: the named model at its own size
     args = Namespace(checkpoint="m", image_shape=None, images=None)
     assert render_job.fit_checkpoint(args) == "m" and args.checkpoint == "m"
     # your own images without --image-shape: the largest
@@ -79,3 +81,47 @@ def test_commands_use_the_fitting_model_and_say_so(root, monkeypatch, caplog):
     # a second model (the viewer's comparison) fitted the same way, --checkpoint left alone
     args = Namespace(checkpoint="solo", image_shape=[128, 128], images=None)
     assert render_job.fit_checkpoint(args, "m") == "m_128" and args.checkpoint == "solo"
+
+
+def synth_root(path, shape, record=True):
+    """A test stage of one scene whose images are stored at ``shape`` (H, W), with or without
+    the ``synth.json`` that ``usplat synth`` writes."""
+    from usplat_dr.data.chunks import encode_image, write_chunk, write_index
+    test = path / "test"
+    test.mkdir(parents=True)
+    image = encode_image(np.zeros((*shape, 3), np.uint8))
+    scene = {"key": "s", "url": "", "timestamps": torch.arange(2),
+             "cameras": torch.zeros(2, 18), "images": [image, image]}
+    write_chunk(test / "000000.torch", [scene])
+    write_index(test, {"s": "000000.torch"})
+    if record:
+        (path / "synth.json").write_text(json.dumps({"resolution": list(shape)}))
+    return path
+
+
+@pytest.mark.parametrize("shape, record, expected", [
+    ((128, 128), True, "m_128"), ((64, 64), True, "m"),
+    ((128, 192), False, "m_128"),  # no synth.json: the first image's own size
+    ((360, 640), False, "m_256")])  # RealEstate10K's frames: the largest that fits
+def test_data_without_a_shape_fits_the_size_its_images_are_stored_at(
+        root, tmp_path, monkeypatch, shape, record, expected):
+    monkeypatch.setattr(render_job, "fitting_checkpoint",
+                        lambda c, s: fitting_checkpoint(c, s, root))
+    data = synth_root(tmp_path / "data", shape, record)
+    assert stored_image_shape(data) == shape
+    args = Namespace(checkpoint="m", image_shape=None, images=None, data=str(data))
+    assert render_job.fit_checkpoint(args) == expected
+    # --image-shape wins over the stored size
+    args = Namespace(checkpoint="m", image_shape=[64, 64], images=None, data=str(data))
+    assert render_job.fit_checkpoint(args) == "m"
+
+
+def test_a_dataset_of_unreadable_size_keeps_the_named_model(root, tmp_path, monkeypatch):
+    monkeypatch.setattr(render_job, "fitting_checkpoint",
+                        lambda c, s: fitting_checkpoint(c, s, root))
+    assert stored_image_shape(tmp_path / "missing") is None
+    (tmp_path / "bad" / "test").mkdir(parents=True)
+    (tmp_path / "bad" / "synth.json").write_text('{"resolution": "large"}')
+    assert stored_image_shape(tmp_path / "bad") is None  # no chunk to read either
+    args = Namespace(checkpoint="m", image_shape=None, images=None, data=str(tmp_path / "bad"))
+    assert render_job.fit_checkpoint(args) == "m"

@@ -260,6 +260,27 @@ def metadata_folder(out: str | os.PathLike, stage: str) -> Path:
     return Path(out) if stage == "test" else Path(out) / stage
 
 
+def stored_image_shape(root: str | os.PathLike, stage: str = "test") -> tuple[int, int] | None:
+    """The (height, width) a dataset's ``stage`` images are stored at: the resolution
+    ``usplat synth`` recorded in its ``synth.json``, else the size of the first image of the
+    first scene of the stage's first chunk; ``None`` when neither can be read (the loaders'
+    own errors say why, later)."""
+    meta = metadata_folder(root, stage) / "synth.json"
+    try:
+        shape = json.loads(meta.read_text(encoding="utf-8"))["resolution"]
+        if (isinstance(shape, list) and len(shape) == 2
+                and all(isinstance(n, int) and n > 0 for n in shape)):
+            return int(shape[0]), int(shape[1])
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    try:
+        scene = read_chunk(stage_chunks([root], stage)[0])[0]
+        with open_image(scene["images"][0].numpy().tobytes(), "an image") as im:
+            return im.size[1], im.size[0]
+    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError):
+        return None
+
+
 def write_index(stage_dir: str | os.PathLike, index: dict[str, str]) -> Path:
     return write_json(Path(stage_dir) / "index.json", dict(sorted(index.items())))
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from usplat_dr.data.chunks import stored_image_shape
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.user_views import (
     UserViews,
@@ -90,15 +91,20 @@ def image_shape(args: argparse.Namespace) -> tuple[int, int]:
 
 def fit_checkpoint(args: argparse.Namespace, checkpoint: str | None = None) -> str:
     """The shipped model to use for ``checkpoint`` (default ``--checkpoint``; which becomes it):
-    its sibling trained at the size nearest ``--image-shape``, or with your own ``--images``
-    and no ``--image-shape`` the largest (``fitting_checkpoint``), logged when it is another.
-    With ``--data`` and no ``--image-shape`` the named model, at its own size."""
+    its sibling trained at the size nearest ``--image-shape``; without one, nearest the size
+    ``--data``'s images are stored at, or with your own ``--images`` the largest
+    (``fitting_checkpoint``); logged when it is another. A dataset whose stored size cannot be
+    read keeps the named model, at its own size."""
     name = args.checkpoint if checkpoint is None else checkpoint
-    own = getattr(args, "images", None) is not None
-    if args.image_shape is None and not own:
-        return name
-    chosen, note = fitting_checkpoint(name, tuple(args.image_shape) if args.image_shape
-                                      else None)
+    if args.image_shape is not None:
+        shape = tuple(args.image_shape)
+    elif getattr(args, "images", None) is not None:
+        shape = None  # your own photographs: larger than any model's size
+    else:
+        shape = stored_image_shape(args.data) if getattr(args, "data", None) else None
+        if shape is None:
+            return name
+    chosen, note = fitting_checkpoint(name, shape)
     if note is not None:
         log.info("%s", note)
     if checkpoint is None:
