@@ -102,3 +102,31 @@ def test_one_octave_up_names_its_columns_by_size(tmp_path, protocol_set):
     assert "psnr_16_up" in header and not any("128" in h or "64" in h for h in header)
     with pytest.raises(SystemExit):
         study.main(["--model-large", "x", "--size", "33", "--data", "d", "--out", str(out)])
+
+
+@pytest.mark.slow
+def test_gaussians_rendered_at_another_size(tmp_path, protocol_set):
+    # the small model's Gaussians drawn at the large size: at its own size they are its render
+    # bit for bit (the same Gaussians, the same rasteriser), and --rendered-up scores them
+    from usplat_dr.evaluation import held_out_scenes, load_example
+    from usplat_dr.training.checkpoints import load
+    big, index, scenes = held_out_scenes(protocol_set, "standard", 1, size=32)
+    model = load("tiny_baseline").eval()
+    one = load_example({**big, "image_shape": [16, 16]}, index, scenes[0])
+    own, _ = study.render(model, one)
+    assert torch.equal(study.render_at(model, one, (16, 16)), own)
+    large = study.render_at(model, one, (32, 32))
+    assert large.shape[-2:] == (32, 32)
+    # drawn at twice the size, then averaged over 2x2 blocks: close to the render at the
+    # model's size (the same Gaussians integrated over the same pixel areas, up to how a
+    # Gaussian of about a pixel is sampled at pixel centres): a loose 0.1 mean absolute
+    # difference on [0, 1] colours, far below what another scene's image would give
+    pooled = torch.nn.functional.avg_pool2d(large, 2)
+    assert (pooled - own).abs().mean() < 0.1
+    out = tmp_path / "out"
+    assert study.main(["--model-large", "tiny_baseline", "--model-small", "tiny_baseline",
+                       "--size", "32", "--data", str(protocol_set), "--images", "0",
+                       "--rendered-up", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert {"psnr_16_rendered_up", "ssim_16_rendered_up"} <= set(summary["means"])
+    assert set(summary["rendered_up"]) == {"psnr", "ssim", "against_upsampled_psnr"}

@@ -8,6 +8,8 @@ resizing costs). Paired differences with 95% t intervals over scenes.
     python train/studies/res128_eval.py --model128 step_0002000.ckpt \\
         --model64 tiny_baseline --data outputs/big128/test5000 --out outputs/res128_eval
 
+``--rendered-up`` adds the small model's Gaussians rendered at the large size (the rasteriser
+draws any size; no upsampling of pixels), also as a fourth column of ``comparison.png``.
 ``--size 256`` makes the same comparison one octave up (a 256x256 model against a 128x128 one
 upsampled; the columns are then named ``psnr_256``, ``psnr_128_up``, ...), ``--device cuda``
 runs both models on a GPU (scripts/run.sh gpu-train).
@@ -69,6 +71,16 @@ def render(model, batch, device: str = "cpu") -> tuple[torch.Tensor, float]:
     return result.color[0].clamp(0, 1).cpu(), rel
 
 
+def render_at(model, batch, shape: tuple[int, int], device: str = "cpu") -> torch.Tensor:
+    """One scene's target renders [T, 3, *shape] of the Gaussians ``model`` predicts from
+    ``batch`` (at its own size), rendered at ``shape`` (the intrinsics are normalised)."""
+    inputs = model_inputs(batch, device)
+    with torch.no_grad():
+        out = model(*inputs, render=False)
+        model.render_targets(out, inputs.targets, shape)
+    return out.color[0].clamp(0, 1).cpu()
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -83,6 +95,10 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", type=int, default=None, help="the first N scenes (default all)")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--images", type=int, default=4, help="scenes shown in comparison.png")
+    p.add_argument("--rendered-up", action="store_true",
+                   help="also score the small model's Gaussians rendered at the large size "
+                   "(columns psnr_64_rendered_up, ssim_64_rendered_up; compared in the summary's "
+                   "rendered_up)")
     p.add_argument("--out", required=True, type=Path, help="folder for the results")
     args = p.parse_args(argv)
     if args.size < 8 or args.size % 2:
@@ -117,8 +133,13 @@ def main(argv=None) -> int:
             "ssim_128_at64": ssim(big_at64, gt64).mean().item(),
             "ssim_64_at64": ssim(pred64, gt64).mean().item(),
             "abs_rel_128_at64": rel_big64})
+        if args.rendered_up:
+            drawn = render_at(small, b64, (hi, hi), args.device)
+            rows[-1].update({"psnr_64_rendered_up": psnr(drawn, gt128).mean().item(),
+                             "ssim_64_rendered_up": ssim(drawn, gt128).mean().item()})
         if k < args.images:
-            shown.append(torch.cat([gt128[0], pred128[0], up[0]], dim=-1))
+            row = [gt128[0], pred128[0], up[0]] + ([drawn[0]] if args.rendered_up else [])
+            shown.append(torch.cat(row, dim=-1))
         print(f"{k + 1}/{len(scenes)} {scene}: {hi} {rows[-1]['psnr_128']:.2f} dB, "
               f"{lo} upsampled {rows[-1]['psnr_64_up']:.2f} dB", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -143,6 +164,11 @@ def main(argv=None) -> int:
         "at64": {"psnr": paired("psnr_128_at64", "psnr_64_at64"),
                  "ssim": paired("ssim_128_at64", "ssim_64_at64"),
                  "abs_rel": paired("abs_rel_128_at64", "abs_rel_64")}}
+    if args.rendered_up:  # the large model against the small one's Gaussians drawn large
+        summary["rendered_up"] = {"psnr": paired("psnr_128", "psnr_64_rendered_up"),
+                                  "ssim": paired("ssim_128", "ssim_64_rendered_up"),
+                                  "against_upsampled_psnr": paired("psnr_64_rendered_up",
+                                                                   "psnr_64_up")}
     gain = summary["at128"]
     summary["success"] = bool(gain["psnr"]["mean"] >= MARGIN_DB and gain["ssim"]["mean"] > 0)
     summary["size"] = hi
@@ -150,7 +176,8 @@ def main(argv=None) -> int:
     if shown:
         from PIL import Image
         grid = torch.cat(shown, dim=-2).permute(1, 2, 0).mul(255).round().byte().numpy()
-        Image.fromarray(grid).save(args.out / "comparison.png")  # rows: GT | 128 | 64 up
+        # columns: GT | large | small upsampled (| small's Gaussians drawn large)
+        Image.fromarray(grid).save(args.out / "comparison.png")
     m = summary["means"]
     print(f"at {hi}x{hi} over {len(rows)} scenes: {hi} model {m['psnr_128']:.3f} dB / SSIM "
           f"{m['ssim_128']:.4f} / AbsRel {m['abs_rel_128']:.4f}; {lo} model upsampled "
@@ -163,6 +190,12 @@ def main(argv=None) -> int:
               f"[{s['ssim']['low']:+.4f}, {s['ssim']['high']:+.4f}], AbsRel "
               f"{s['abs_rel']['mean']:+.4f} [{s['abs_rel']['low']:+.4f}, "
               f"{s['abs_rel']['high']:+.4f}]")
+    if args.rendered_up:
+        s, u = summary["rendered_up"]["psnr"], summary["rendered_up"]["against_upsampled_psnr"]
+        print(f"the {lo} model's Gaussians rendered at {hi}: {m['psnr_64_rendered_up']:.3f} dB "
+              f"({u['mean']:+.3f} [{u['low']:+.3f}, {u['high']:+.3f}] against its renders "
+              f"upsampled); the {hi} model against them {s['mean']:+.3f} [{s['low']:+.3f}, "
+              f"{s['high']:+.3f}] dB")
     print(f"success (>= +{MARGIN_DB} dB and higher SSIM at {hi}x{hi}): {summary['success']}")
     return 0
 
