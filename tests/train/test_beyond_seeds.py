@@ -57,3 +57,16 @@ def test_a_malformed_image_shape_is_refused(tmp_path):
     proc = subprocess.run(["bash", str(SCRIPT), "0"], env=env, capture_output=True, text=True,
                           timeout=60, check=False)
     assert proc.returncode == 2 and "IMAGE_SHAPE must be two numbers" in proc.stdout
+
+
+def test_runs_keep_large_blocks_in_the_heap_unless_the_caller_says(tmp_path):
+    # glibc's thresholds (read at a process's start): 4 GiB by default, the caller's if set
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    env.update({"OUT": str(tmp_path), "DRY_RUN": "1"})
+    proc = subprocess.run(["bash", str(SCRIPT), "0"], env=env, capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert "MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=4294967296" in proc.stdout
+    env["MALLOC_MMAP_THRESHOLD_"] = "131072"
+    proc = subprocess.run(["bash", str(SCRIPT), "0"], env=env, capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert "MALLOC_MMAP_THRESHOLD_=131072 " in proc.stdout

@@ -17,6 +17,13 @@
 # IMAGE_SHAPE ("H W", default the data's config: 64 64), DRY_RUN=1 (print each seed's command,
 # run nothing).
 set -uo pipefail
+# glibc gives every freed block above its mmap threshold (at most 32 MiB) back to the system,
+# and at 8 scenes a step of 128x128 many tensors are larger, so each step faults their pages
+# in again. Kept in the heap, a (c) step at 128x128 ran about 1.35x faster with the same
+# weights bit for bit (train/bench/README.md, "glibc's allocator and a training step"). A
+# caller's own setting wins; glibc reads these at start, so they are set here, not in Python.
+export MALLOC_MMAP_THRESHOLD_=${MALLOC_MMAP_THRESHOLD_:-4294967296}
+export MALLOC_TRIM_THRESHOLD_=${MALLOC_TRIM_THRESHOLD_:-4294967296}
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 cd "$ROOT"
 PY=${PYTHON:-.venv/bin/python}
@@ -51,7 +58,11 @@ run_seed() {
     train.progress=false train.steps=6000 train.checkpoint_every=50 train.keep_every=100
     train.validate_every=100 train.log_every=10 data_loader.batch_size=8 "${arm[@]}"
     dataset.view_sampler.max_distance_beyond_context_views="$BEYOND" output_dir="$dir" --resume)
-  if [ "$DRY_RUN" = 1 ]; then echo "seed $seed: ${cmd[*]}"; return 0; fi
+  if [ "$DRY_RUN" = 1 ]; then
+    echo "seed $seed: MALLOC_MMAP_THRESHOLD_=$MALLOC_MMAP_THRESHOLD_" \
+      "MALLOC_TRIM_THRESHOLD_=$MALLOC_TRIM_THRESHOLD_ ${cmd[*]}"
+    return 0
+  fi
   "${cmd[@]}" >>"$dir.log" 2>&1 &
   local pid=$!
   while kill -0 "$pid" 2>/dev/null && [ ! -f "$kept" ]; do sleep 5; done
