@@ -33,8 +33,10 @@ ROOT = Path(__file__).parents[2] / "checkpoints"
 MANIFEST = json.loads((ROOT / "manifest.json").read_text())
 KEYS = {"name", "preset", "variant", "file", "sha256", "train_command", "data", "steps",
         "metrics"}
-#: The budget for shipped weights (they live in the repository and the wheel).
-MAX_BYTES = 25 * 10**6
+#: The budget for shipped weights (they live in the repository and the wheel; docs/model.md):
+#: 25 MB until the 128x128 models, 40 MB since (the tiny (a) is 3.3 MB at any size, the (c)
+#: 7.3 MB; a GPU machine's carry of 64 MiB must hold them with the repository and its data).
+MAX_BYTES = 40 * 10**6
 
 
 @pytest.fixture(autouse=True)
