@@ -42,7 +42,7 @@ def test_paired_difference_and_interval_match_student_t():
     row = study.compare({0.3: a}, {0.3: b})[0.3]
     d = np.array([b[s] - a[s] for s in scenes])
     half = stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / np.sqrt(len(d))
-    assert row["scenes"] == 12
+    assert row["scenes"] == 12 and row["unpaired"] == 1
     assert np.isclose(row["difference"], d.mean(), atol=1e-12)
     # the same float64 arithmetic in another order: 1e-9 dB is far below any reading's use
     assert abs(row["low"] - (d.mean() - half)) < 1e-9
@@ -55,7 +55,7 @@ def test_paired_difference_and_interval_match_student_t():
     (0.1, 0.5, "denser pixels leave less to drop"),
     (-0.1, 0.2, "no difference shown")])
 def test_the_registered_rule(low, high, expected):
-    assert study.label((low + high) / 2, low, high) == expected
+    assert study.label(low, high) == expected
 
 
 def test_the_chart_numbers_and_errors(tmp_path, capsys):
@@ -79,6 +79,9 @@ def test_the_chart_numbers_and_errors(tmp_path, capsys):
     with pytest.raises(SystemExit):  # a ranking measured at one size only
         study.main(["--small", str(folders["64", "learned"]), "--large",
                     str(folders["128", "dither"]), "--out", str(out)])
+    with pytest.raises(SystemExit):  # two folders of one ranking at one size
+        study.main(["--small", str(folders["64", "learned"]), str(folders["64", "learned"]),
+                    "--large", str(folders["128", "learned"]), "--out", str(out)])
     with pytest.raises(SystemExit):  # a fraction neither measured
         study.main(["--small", str(folders["64", "learned"]), "--large",
                     str(folders["128", "learned"]), "--rule-keep", "0.2", "--out", str(out)])

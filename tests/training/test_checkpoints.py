@@ -34,8 +34,9 @@ MANIFEST = json.loads((ROOT / "manifest.json").read_text())
 KEYS = {"name", "preset", "variant", "file", "sha256", "train_command", "data", "steps",
         "metrics"}
 #: The budget for shipped weights (they live in the repository and the wheel; docs/model.md):
-#: 25 MB until the 128x128 models, 40 MB since (the tiny (a) is 3.3 MB at any size, the (c)
-#: 7.3 MB; a GPU machine's carry of 64 MiB must hold them with the repository and its data).
+#: 25 MB until the 128x128 models, 40 MB since (the tiny (a) is 3.5 MB at any size, the (c)
+#: 7.3 MB, in float16). The GPU path's carry (64 MiB with the repository, its data and the
+#: drjit wheel) holds a 128x128 (a) beside what ships; a 128x128 (c) needs less data carried.
 MAX_BYTES = 40 * 10**6
 
 

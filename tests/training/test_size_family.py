@@ -99,14 +99,20 @@ def synth_root(path, shape, record=True):
     return path
 
 
+def in_root(monkeypatch, root):
+    """The render job's view of the shipped checkpoints: those of ``root``."""
+    monkeypatch.setattr(render_job, "fitting_checkpoint",
+                        lambda c, s: fitting_checkpoint(c, s, root))
+    monkeypatch.setattr(render_job, "size_family", lambda n: size_family(n, root))
+
+
 @pytest.mark.parametrize("shape, record, expected", [
     ((128, 128), True, "m_128"), ((64, 64), True, "m"),
     ((128, 192), False, "m_128"),  # no synth.json: the first image's own size
     ((360, 640), False, "m_256")])  # RealEstate10K's frames: the largest that fits
 def test_data_without_a_shape_fits_the_size_its_images_are_stored_at(
         root, tmp_path, monkeypatch, shape, record, expected):
-    monkeypatch.setattr(render_job, "fitting_checkpoint",
-                        lambda c, s: fitting_checkpoint(c, s, root))
+    in_root(monkeypatch, root)
     data = synth_root(tmp_path / "data", shape, record)
     assert stored_image_shape(data) == shape
     args = Namespace(checkpoint="m", image_shape=None, images=None, data=str(data))
@@ -116,9 +122,25 @@ def test_data_without_a_shape_fits_the_size_its_images_are_stored_at(
     assert render_job.fit_checkpoint(args) == "m"
 
 
+def test_synth_json_is_read_before_the_images(tmp_path):
+    # a set whose synth.json says 128x128 over images stored at 64x64: the record is what
+    # usplat synth rendered at, read without loading a chunk
+    data = synth_root(tmp_path / "data", (64, 64), record=False)
+    (data / "synth.json").write_text(json.dumps({"resolution": [128, 128]}))
+    assert stored_image_shape(data) == (128, 128)
+
+
+def test_the_data_is_not_read_where_it_cannot_choose(root, tmp_path, monkeypatch):
+    in_root(monkeypatch, root)
+    monkeypatch.setattr(render_job, "stored_image_shape",
+                        lambda d: pytest.fail("read the data for a name without siblings"))
+    for name in ("solo", str(root / "m.pt")):  # no siblings; a file
+        args = Namespace(checkpoint=name, image_shape=None, images=None, data="d")
+        assert render_job.fit_checkpoint(args) == name
+
+
 def test_a_dataset_of_unreadable_size_keeps_the_named_model(root, tmp_path, monkeypatch):
-    monkeypatch.setattr(render_job, "fitting_checkpoint",
-                        lambda c, s: fitting_checkpoint(c, s, root))
+    in_root(monkeypatch, root)
     assert stored_image_shape(tmp_path / "missing") is None
     (tmp_path / "bad" / "test").mkdir(parents=True)
     (tmp_path / "bad" / "synth.json").write_text('{"resolution": "large"}')

@@ -77,6 +77,9 @@ def main(argv=None) -> int:
         p.error("--steps must be at least 3 (the first step is left out of the medians)")
     if not train_args:
         p.error("give usplat train's arguments after --")
+    from usplat_dr.evaluation.timing import machine_line  # the standard library only
+
+    print(machine_line(), flush=True)
     found = {name: [] for name in VARIANTS}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):

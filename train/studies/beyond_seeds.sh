@@ -19,7 +19,7 @@
 set -uo pipefail
 # glibc gives every freed block above its mmap threshold (at most 32 MiB) back to the system,
 # and at 8 scenes a step of 128x128 many tensors are larger, so each step faults their pages
-# in again. Kept in the heap, a (c) step at 128x128 ran about 1.35x faster with the same
+# in again. Kept in the heap, a (c) step at 128x128 ran 1.33x faster with the same
 # weights bit for bit (train/bench/README.md, "glibc's allocator and a training step"). A
 # caller's own setting wins; glibc reads these at start, so they are set here, not in Python.
 export MALLOC_MMAP_THRESHOLD_=${MALLOC_MMAP_THRESHOLD_:-4294967296}

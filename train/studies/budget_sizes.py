@@ -43,7 +43,7 @@ def ranking(folder: Path) -> str:
     return summary["rank_by"]
 
 
-def label(mean: float, low: float, high: float) -> str:
+def label(low: float, high: float) -> str:
     """The registered rule on (large - small) loss: negative means the large size loses less."""
     if high < 0:
         return "denser pixels leave more to drop"
@@ -66,7 +66,8 @@ def compare(small: dict, large: dict) -> dict[float, dict]:
         low, high = t_interval(b - a)
         rows[keep] = {"scenes": len(scenes), "small": float(a.mean()), "large": float(b.mean()),
                       "difference": float((b - a).mean()), "low": low, "high": high,
-                      "label": label(float((b - a).mean()), low, high)}
+                      "label": label(low, high),
+                      "unpaired": len(set(small[keep]) ^ set(large[keep]))}
     return rows
 
 
@@ -82,8 +83,14 @@ def main(argv=None) -> int:
     p.add_argument("--rule-ranking", default="learned")
     p.add_argument("--out", type=Path, required=True, help="the chart (PNG)")
     args = p.parse_args(argv)
-    small = {ranking(f): losses(f) for f in args.small}
-    large = {ranking(f): losses(f) for f in args.large}
+    small, large = {}, {}
+    for where, folders in ((small, args.small), (large, args.large)):
+        for f in folders:
+            r = ranking(f)
+            if r in where:
+                p.error(f"two folders of one size measured {r}: {f} and another; give one "
+                        "folder per ranking and size")
+            where[r] = losses(f)
     if set(small) != set(large):
         p.error(f"--small has the rankings {sorted(small)}, --large {sorted(large)}: give the "
                 "same ones at both sizes")
@@ -97,6 +104,10 @@ def main(argv=None) -> int:
             print(f"  {keep:.0%} | {row['small']:+.2f} | {row['large']:+.2f} | "
                   f"{row['difference']:+.2f} [{row['low']:+.2f}, {row['high']:+.2f}] "
                   f"({row['scenes']} scenes)")
+    dropped = {r: max(row["unpaired"] for row in rows.values()) for r, rows in result.items()}
+    for r, n in dropped.items():
+        if n:
+            print(f"{r}: {n} scene(s) measured at one size only, left out of the pairs")
     ruled = result[args.rule_ranking].get(args.rule_keep)
     if ruled is None:
         p.error(f"--rule-keep {args.rule_keep} is not a fraction both sizes measured")
@@ -117,7 +128,7 @@ def main(argv=None) -> int:
     ax.axhline(0, color="grey", lw=0.6)
     ax.set_xlabel("fraction of the model's Gaussians kept per target")
     ax.set_ylabel("PSNR loss against all Gaussians, dB")
-    ax.set_title(f"The (a)'s budget at {lo}x{lo} and {hi}x{hi} (held-out, standard split)")
+    ax.set_title(f"The Gaussian budget at {lo}x{lo} and {hi}x{hi} (held out, standard split)")
     ax.legend(fontsize=8)
     fig.tight_layout()
     print(f"wrote {save_figure(fig, args.out)}")

@@ -1,4 +1,4 @@
-"""What resolution alone can buy on a held-out set: the bound behind the 128x128 test's margin.
+"""What resolution alone can buy: the detail a model at twice the size could add.
 
 The registered test of the 128x128 (a) asks its renders to beat the 64x64 model's, upsampled 2x
 (bicubic), by 1.0 dB. The upsampled renders' error against the 128x128 ground truth has two
@@ -12,10 +12,11 @@ target, averaged over targets, as the protocol's):
 - ``psnr_small_up``: the small model's renders upsampled, against the ground truth (as
   res128_eval.py's ``psnr_64_up``);
 - ``psnr_small_vs_truth_up``: the same renders upsampled against the upsampled ground truth;
-- ``gain_bound``: ``psnr_small_vs_truth_up - psnr_small_up``, what removing the resolution loss
-  alone gains;
+- ``detail_gain``: ``psnr_small_vs_truth_up - psnr_small_up``, what such a large model gains
+  (exactly: its render is the small one's upsampled plus the missing detail, so its error is
+  the small model's own); not a limit on a large model, which may also mend its other errors;
 - ``cross``: the share of the upsampled renders' MSE in the cross term of the two parts (0 when
-  they are orthogonal, as the bound assumes).
+  they are orthogonal: how far the two parts' MSEs add up to the whole).
 
     python train/studies/res128_ceiling.py --model-small tiny_baseline \\
         --data outputs/big128/test5000 --out outputs/res128_ceiling
@@ -61,7 +62,7 @@ def decompose(pred_small: torch.Tensor, truth_small: torch.Tensor,
 
     return {"psnr_truth_up": db(res), "psnr_small_up": db(err),
             "psnr_small_vs_truth_up": db(own),
-            "gain_bound": db(own) - db(err),
+            "detail_gain": db(own) - db(err),
             "cross": float(((err - res - own) / err).mean())}
 
 
@@ -78,6 +79,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.size < 8 or args.size % 2:
         p.error(f"--size must be an even number of pixels >= 8, got {args.size}")
+    if args.scenes is not None and args.scenes < 2:
+        p.error(f"--scenes must be at least 2 (an interval over scenes), got {args.scenes}")
     torch.set_num_threads(args.threads)
     small = load(args.model_small).eval()
     big_set, index, scenes = held_out_scenes(args.data, "standard", args.scenes, size=args.size)
@@ -91,7 +94,7 @@ def main(argv=None) -> int:
         pred, _ = res128_eval.render(small, half)
         rows.append({"scene": scenes[k], **decompose(
             pred, half["target"]["image"][0], big["target"]["image"][0])})
-        print(f"{k + 1}/{len(scenes)} {scenes[k]}: bound {rows[-1]['gain_bound']:+.2f} dB",
+        print(f"{k + 1}/{len(scenes)} {scenes[k]}: detail gain {rows[-1]['detail_gain']:+.2f} dB",
               flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     with atomic_open(args.out / "per_scene.csv", "w") as f:
@@ -99,18 +102,18 @@ def main(argv=None) -> int:
         w.writeheader()
         w.writerows(rows)
     col = {key: np.array([r[key] for r in rows]) for key in rows[0] if key != "scene"}
-    low, high = t_interval(col["gain_bound"])
+    low, high = t_interval(col["detail_gain"])
     summary = {"scenes": len(rows), "data": str(args.data), "model_small": args.model_small,
                "size": args.size, "means": {k: float(v.mean()) for k, v in col.items()},
-               "gain_bound": {"mean": float(col["gain_bound"].mean()), "low": low,
-                              "high": high, "max": float(col["gain_bound"].max())},
+               "detail_gain": {"mean": float(col["detail_gain"].mean()), "low": low,
+                              "high": high, "max": float(col["detail_gain"].max())},
                "margin_db": res128_eval.MARGIN_DB}
     write_json(args.out / "summary.json", summary)
     m = summary["means"]
     print(f"over {len(rows)} scenes at {args.size}: ground truth at {args.size // 2} upsampled "
           f"{m['psnr_truth_up']:.2f} dB; the small model upsampled {m['psnr_small_up']:.3f} dB, "
           f"against the upsampled ground truth {m['psnr_small_vs_truth_up']:.3f} dB; what "
-          f"resolution alone can gain {low:+.3f}..{high:+.3f} (mean {m['gain_bound']:+.3f}) "
+          f"resolution alone can gain {low:+.3f}..{high:+.3f} (mean {m['detail_gain']:+.3f}) "
           f"dB against the test's +{res128_eval.MARGIN_DB}; cross term {m['cross']:+.3f} of "
           "the MSE")
     return 0

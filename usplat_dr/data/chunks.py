@@ -263,15 +263,20 @@ def metadata_folder(out: str | os.PathLike, stage: str) -> Path:
 def stored_image_shape(root: str | os.PathLike, stage: str = "test") -> tuple[int, int] | None:
     """The (height, width) a dataset's ``stage`` images are stored at: the resolution
     ``usplat synth`` recorded in its ``synth.json``, else the size of the first image of the
-    first scene of the stage's first chunk; ``None`` when neither can be read (the loaders'
-    own errors say why, later)."""
+    first scene of the stage's first chunk (a set of mixed sizes: that scene's); ``None`` when
+    neither can be read (the loaders' own errors say why, later).
+
+    Examples:
+        >>> stored_image_shape("no/such/dataset") is None
+        True
+    """
     meta = metadata_folder(root, stage) / "synth.json"
     try:
         shape = json.loads(meta.read_text(encoding="utf-8"))["resolution"]
         if (isinstance(shape, list) and len(shape) == 2
                 and all(isinstance(n, int) and n > 0 for n in shape)):
             return int(shape[0]), int(shape[1])
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):
         pass
     try:
         scene = read_chunk(stage_chunks([root], stage)[0])[0]

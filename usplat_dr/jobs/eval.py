@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--index", nargs="+", metavar="SPLIT=PATH",
                    help="evaluation index JSON(s); default: the synthetic set's own splits")
     p.add_argument("--splits", nargs="+", help="synthetic splits to evaluate (default: all)")
-    add_image_shape_argument(p)
+    add_image_shape_argument(p, fits=False)
     add_trust_argument(p)
     p.add_argument("--prune", action="store_true",
                    help="prune the Gaussians per target view before rendering (exact culling "

@@ -45,6 +45,7 @@ from usplat_dr.training.checkpoints import (
     depth_range_warning,
     fitting_checkpoint,
     load,
+    size_family,
     training_image_shape,
 )
 
@@ -75,10 +76,14 @@ def add_trust_argument(p: argparse.ArgumentParser) -> None:
                    "it (it can run code: only for files you trust)")
 
 
-def add_image_shape_argument(p: argparse.ArgumentParser) -> None:
+def add_image_shape_argument(p: argparse.ArgumentParser, fits: bool = True) -> None:
+    """``--image-shape``; ``fits``: the command fits a shipped name to the size first
+    (``fit_checkpoint``), and its help says so."""
+    fitted = ("; a shipped name with siblings at other sizes is first fitted to --data's "
+              "stored size, or to your own images" if fits else "")
     p.add_argument("--image-shape", type=positive_int, nargs=2, metavar=("H", "W"),
                    help="the size images are cropped and resized to (default: the size the "
-                   "checkpoint was trained at)")
+                   f"checkpoint was trained at{fitted})")
 
 
 def image_shape(args: argparse.Namespace) -> tuple[int, int]:
@@ -101,7 +106,11 @@ def fit_checkpoint(args: argparse.Namespace, checkpoint: str | None = None) -> s
     elif getattr(args, "images", None) is not None:
         shape = None  # your own photographs: larger than any model's size
     else:
-        shape = stored_image_shape(args.data) if getattr(args, "data", None) else None
+        # the data's size is read only where it can choose (a shipped name with siblings)
+        data = getattr(args, "data", None)
+        if data is None or len(size_family(str(name).removesuffix(".pt"))) < 2:
+            return name
+        shape = stored_image_shape(data)
         if shape is None:
             return name
     chosen, note = fitting_checkpoint(name, shape)
