@@ -43,6 +43,7 @@ from usplat_dr.jobs.render import (
     add_trust_argument,
     check_own_views,
     fit_checkpoint,
+    image_shape,
     one_example,
     own_views,
 )
@@ -572,8 +573,9 @@ def scene_from_args(args: argparse.Namespace):
                         f"PLY: {Path(args.ply).name}")
     compare = compare_checkpoint(args)  # paired by the name asked for, then both fitted
     fit_checkpoint(args)
-    if compare is not None:
-        compare = fit_checkpoint(args, compare)
+    if compare is not None:  # it renders the same images: fitted to their size
+        compare = fit_checkpoint(argparse.Namespace(
+            checkpoint=compare, image_shape=list(image_shape(args)), images=None, data=None))
     if args.data is not None:
         model, batch = one_example(args)
         inputs = model_inputs(batch, torch.device(args.device))
