@@ -67,7 +67,7 @@ def test_an_unreadable_sibling_is_left_out_and_said(root, caplog):
 def test_commands_use_the_fitting_model_and_say_so(root, monkeypatch, caplog):
     monkeypatch.setattr(checkpoints, "CHECKPOINTS", root)
     monkeypatch.setattr(render_job, "fitting_checkpoint",
-                        lambda c, s: fitting_checkpoint(c, s, root))
+                        lambda c, s, **kw: fitting_checkpoint(c, s, root, **kw))
     caplog.set_level(logging.INFO, logger="usplat_dr.jobs.render")
     args = Namespace(checkpoint="m", image_shape=[128, 128], images=None)
     assert render_job.fit_checkpoint(args) == "m_128" and args.checkpoint == "m_128"
@@ -102,7 +102,7 @@ def synth_root(path, shape, record=True):
 def in_root(monkeypatch, root):
     """The render job's view of the shipped checkpoints: those of ``root``."""
     monkeypatch.setattr(render_job, "fitting_checkpoint",
-                        lambda c, s: fitting_checkpoint(c, s, root))
+                        lambda c, s, **kw: fitting_checkpoint(c, s, root, **kw))
     monkeypatch.setattr(render_job, "size_family", lambda n: size_family(n, root))
 
 

@@ -101,6 +101,7 @@ def fit_checkpoint(args: argparse.Namespace, checkpoint: str | None = None) -> s
     (``fitting_checkpoint``); logged when it is another. A dataset whose stored size cannot be
     read keeps the named model, at its own size."""
     name = args.checkpoint if checkpoint is None else checkpoint
+    family = None
     if args.image_shape is not None:
         shape = tuple(args.image_shape)
     elif getattr(args, "images", None) is not None:
@@ -108,12 +109,13 @@ def fit_checkpoint(args: argparse.Namespace, checkpoint: str | None = None) -> s
     else:
         # the data's size is read only where it can choose (a shipped name with siblings)
         data = getattr(args, "data", None)
-        if data is None or len(size_family(str(name).removesuffix(".pt"))) < 2:
+        if data is None:
             return name
-        shape = stored_image_shape(data)
+        family = size_family(str(name).removesuffix(".pt"))
+        shape = stored_image_shape(data) if len(family) >= 2 else None
         if shape is None:
             return name
-    chosen, note = fitting_checkpoint(name, shape)
+    chosen, note = fitting_checkpoint(name, shape, family=family)
     if note is not None:
         log.info("%s", note)
     if checkpoint is None:

@@ -580,13 +580,14 @@ def size_family(name: str, root: Path = CHECKPOINTS) -> dict[int, str]:
 
 
 def fitting_checkpoint(checkpoint: str | os.PathLike, image_shape: tuple[int, int] | None,
-                       root: Path = CHECKPOINTS) -> tuple[str, str | None]:
+                       root: Path = CHECKPOINTS, family: dict[int, str] | None = None
+                       ) -> tuple[str, str | None]:
     """The shipped model of ``checkpoint``'s family (``size_family``) that fits a render of
     ``image_shape``: the one trained nearest its shorter side (in octaves; the larger on a
     tie), or with ``image_shape=None`` (a user's own photographs, larger than any) the largest;
     and a line saying so where that is not ``checkpoint``, else ``None``. Files, names without
     siblings and names that give a size themselves (``tiny_baseline_128``) come back as they
-    are.
+    are. ``family``: ``size_family(checkpoint, root)`` where the caller has it already.
 
     Examples:
         >>> fitting_checkpoint("tiny_full", (64, 64))
@@ -596,7 +597,8 @@ def fitting_checkpoint(checkpoint: str | os.PathLike, image_shape: tuple[int, in
     if (Path(checkpoint).is_file() or len(Path(checkpoint).parts) != 1
             or SIZED_NAME.match(name)):
         return str(checkpoint), None
-    family = size_family(name, root)
+    if family is None:
+        family = size_family(name, root)
     if len(family) < 2:
         return str(checkpoint), None
     if image_shape is None:
