@@ -7,7 +7,7 @@
 #
 #   OUT=outputs/beyond128 DATA=outputs/big128/test5000 EVAL=train/studies/beyond128 \
 #     bash train/studies/beyond_eval.sh full_seed_0 baseline_seed_0
-#   -> OUT/NAME/step_0000300.pt and EVAL/eval_NAME/{per_scene.csv,summary.json}
+#   -> OUT/NAME/step_0000300.pt, EVAL/eval_NAME/{per_scene.csv,summary.json}, OUT/NAME.eval.log
 #
 # Environment: OUT (the runs' folder, default outputs/beyond), STOP (default 300), DATA (the
 # held-out set, default outputs/big/test5000), EVAL (default train/studies/beyond), SPLITS
@@ -43,8 +43,9 @@ export_weights(sys.argv[1], sys.argv[2], half=True)' "$kept" "$weights")
     "${export_cmd[@]}" || { echo "$name: export failed"; status=1; continue; }
   fi
   mkdir -p "$EVAL"
-  USPLAT_THREADS=1 "${eval_cmd[@]}" >"$EVAL/eval_$name.log" 2>&1 \
+  # the log (progress bars) beside the run, not in EVAL (which may be committed)
+  USPLAT_THREADS=1 "${eval_cmd[@]}" >"$OUT/$name.eval.log" 2>&1 \
     && echo "$name: scored ($folder)" \
-    || { echo "$name: evaluation failed (see $EVAL/eval_$name.log)"; status=1; }
+    || { echo "$name: evaluation failed (see $OUT/$name.eval.log)"; status=1; }
 done
 exit $status
