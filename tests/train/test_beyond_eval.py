@@ -43,6 +43,8 @@ def test_a_kept_state_is_exported_and_scored_once(tmp_path, protocol_set):
     # the evaluation's log lies beside the run, not among the scores (which get committed)
     assert (tmp_path / "runs" / "baseline_seed_7.eval.log").is_file()
     assert not list((tmp_path / "eval").glob("*.log"))
+    assert not (tmp_path / "eval" / "eval_baseline_seed_7" / "renders").exists()
+    assert list((tmp_path / "runs" / "baseline_seed_7.renders").rglob("*.png"))
     again = _run(env, "baseline_seed_7", timeout=60)
     assert again.returncode == 0 and "already scored" in again.stdout
 

@@ -7,7 +7,8 @@
 #
 #   OUT=outputs/beyond128 DATA=outputs/big128/test5000 EVAL=train/studies/beyond128 \
 #     bash train/studies/beyond_eval.sh full_seed_0 baseline_seed_0
-#   -> OUT/NAME/step_0000300.pt, EVAL/eval_NAME/{per_scene.csv,summary.json}, OUT/NAME.eval.log
+#   -> OUT/NAME/step_0000300.pt, EVAL/eval_NAME/{per_scene.csv,summary.json}, and beside the
+#      run OUT/NAME.eval.log and OUT/NAME.renders
 #
 # Environment: OUT (the runs' folder, default outputs/beyond), STOP (default 300), DATA (the
 # held-out set, default outputs/big/test5000), EVAL (default train/studies/beyond), SPLITS
@@ -43,9 +44,15 @@ export_weights(sys.argv[1], sys.argv[2], half=True)' "$kept" "$weights")
     "${export_cmd[@]}" || { echo "$name: export failed"; status=1; continue; }
   fi
   mkdir -p "$EVAL"
-  # the log (progress bars) beside the run, not in EVAL (which may be committed)
-  USPLAT_THREADS=1 "${eval_cmd[@]}" >"$OUT/$name.eval.log" 2>&1 \
-    && echo "$name: scored ($folder)" \
-    || { echo "$name: evaluation failed (see $OUT/$name.eval.log)"; status=1; }
+  # the log (progress bars) and the renders beside the run, not in EVAL (which may be
+  # committed): EVAL keeps the scores
+  if USPLAT_THREADS=1 "${eval_cmd[@]}" >"$OUT/$name.eval.log" 2>&1; then
+    if [ -d "$folder/renders" ]; then
+      rm -rf "$OUT/$name.renders"; mv "$folder/renders" "$OUT/$name.renders"
+    fi
+    echo "$name: scored ($folder)"
+  else
+    echo "$name: evaluation failed (see $OUT/$name.eval.log)"; status=1
+  fi
 done
 exit $status
