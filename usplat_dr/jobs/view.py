@@ -50,7 +50,12 @@ from usplat_dr.jobs.render import (
 from usplat_dr.model.ply import read_ply
 from usplat_dr.model.uniquesplat import VARIANTS
 from usplat_dr.render import RasterSettings, rasterize
-from usplat_dr.training.checkpoints import load, resolve_checkpoint, shipped_checkpoints
+from usplat_dr.training.checkpoints import (
+    fitting_checkpoint,
+    load,
+    resolve_checkpoint,
+    shipped_checkpoints,
+)
 
 log = logging.getLogger(__name__)
 
@@ -574,8 +579,9 @@ def scene_from_args(args: argparse.Namespace):
     compare = compare_checkpoint(args)  # paired by the name asked for, then both fitted
     fit_checkpoint(args)
     if compare is not None:  # it renders the same images: fitted to their size
-        compare = fit_checkpoint(argparse.Namespace(
-            checkpoint=compare, image_shape=list(image_shape(args)), images=None, data=None))
+        compare, note = fitting_checkpoint(compare, image_shape(args))
+        if note is not None:
+            log.info("%s", note)
     if args.data is not None:
         model, batch = one_example(args)
         inputs = model_inputs(batch, torch.device(args.device))
