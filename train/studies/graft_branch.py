@@ -61,9 +61,11 @@ def graft(base: str, branch: str, out: str | Path) -> dict:
                          f"variant is {cfg_dict and cfg_dict.get('variant')!r}, not 'full')")
     cfg = UniqueSplatCfg.from_dict({**cfg_dict, "resnet_weights": None})
     # H_a's embedding and hidden layers are random at the paper's start (its last layer zero,
-    # its bias W): one fixed draw, so the same command writes the same file
-    torch.manual_seed(0)
-    model = UniqueSplat(cfg)
+    # its bias W): one fixed draw, so the same command writes the same file (the caller's
+    # random state left as it was)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        model = UniqueSplat(cfg)
     init_from_checkpoint(model, base_path)  # the paper's start: the branch closed
     own = model.state_dict()
     taken = {k: v.float() for k, v in donor["model"].items() if k.startswith(BRANCH)}
