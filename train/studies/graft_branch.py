@@ -23,7 +23,6 @@ weight matched).
 """
 
 import argparse
-import hashlib
 import sys
 from pathlib import Path
 
@@ -31,8 +30,10 @@ import torch
 
 import usplat_dr  # noqa: F401  (libLLVM first)
 from usplat_dr.io.atomic import torch_save
+from usplat_dr.io.user_files import sha256
 from usplat_dr.model.uniquesplat import UniqueSplat, UniqueSplatCfg
 from usplat_dr.training.checkpoints import (
+    MAX_CHECKPOINT_BYTES,
     init_from_checkpoint,
     read_usplat_checkpoint,
     resolve_checkpoint,
@@ -41,10 +42,6 @@ from usplat_dr.training.checkpoints import (
 
 #: The view-specific branch's weights: E_H, Proj and phi (``view_embedding``) and H_s.
 BRANCH = ("view_embedding.", "specific.")
-
-
-def sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def graft(base: str, branch: str, out: str | Path) -> dict:
@@ -75,8 +72,9 @@ def graft(base: str, branch: str, out: str | Path) -> dict:
                          f"its own config describes")
     model.load_state_dict(taken, strict=False)
     base_state = read_usplat_checkpoint(base_path)
-    info = {"base": base_path.name, "base_sha256": sha256(base_path),
-            "branch": branch_path.name, "branch_sha256": sha256(branch_path),
+    limit = MAX_CHECKPOINT_BYTES
+    info = {"base": base_path.name, "base_sha256": sha256(base_path, "--base", limit),
+            "branch": branch_path.name, "branch_sha256": sha256(branch_path, "--branch", limit),
             "branch_step": donor.get("step", 0), "branch_weights": len(taken)}
     state = {"format": "usplat-weights/1",
              "model": {k: v.contiguous() for k, v in model.state_dict().items()},
