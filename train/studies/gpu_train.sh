@@ -7,8 +7,8 @@
 # "Four times the pixels").
 #
 #   python train/studies/carry_sets.py pack --out .gpudata256 --jpeg-quality 90 --chroma 420 \
-#       train=outputs/big256/train16/train:16:jpeg
-#   python train/studies/carry_sets.py pack --out .gpudata256 heldout=outputs/big256/test5000:12:jpeg
+#       train=outputs/big256/train16/train:12:jpeg
+#   python train/studies/carry_sets.py pack --out .gpudata256 heldout=outputs/big256/test5000:8:jpeg
 #   bash scripts/run.sh gpu-train OUT [SECONDS] [STEPS]     # on the GPU machine
 #
 # SECONDS (default 300): the training's wall-time limit (it stops at STEPS, default 100000, or
