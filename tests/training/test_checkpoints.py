@@ -22,6 +22,7 @@ from usplat_dr.training.checkpoints import (
     BASE,
     BUDGETED,
     SHIPPED,
+    SIZED_NAME,
     depth_range_warning,
     load_model,
     registered_verdict,
@@ -58,7 +59,10 @@ def test_manifest_lists_the_required_models_within_budget():
             assert Path(e["init_from"]).name == by[e["base"]]["file"], e["name"]
         elif e["variant"] != "baseline" or e["name"].endswith("_continued"):
             # (b), (c) and the control: fine-tuned by the paper's protocol from the shipped (a)
-            assert Path(e["init_from"]).name == by["tiny_baseline"]["file"], e["name"]
+            # of their size (tiny_full_128 from tiny_baseline_128)
+            sized = SIZED_NAME.match(e["name"])
+            a_name = f"tiny_baseline_{sized['size']}" if sized else "tiny_baseline"
+            assert Path(e["init_from"]).name == by[a_name]["file"], e["name"]
         elif e.get("init_from_commit"):
             # a staged (a) started from an earlier version of a file: named by commit and hash
             assert re.fullmatch(r"[0-9a-f]{7,40}", e["init_from_commit"]), e["name"]

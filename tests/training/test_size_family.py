@@ -147,3 +147,13 @@ def test_a_dataset_of_unreadable_size_keeps_the_named_model(root, tmp_path, monk
     assert stored_image_shape(tmp_path / "bad") is None  # no chunk to read either
     args = Namespace(checkpoint="m", image_shape=None, images=None, data=str(tmp_path / "bad"))
     assert render_job.fit_checkpoint(args) == "m"
+
+
+def test_the_shipped_families_have_their_128x128_members():
+    # read from the shipped files' own configs (not the manifest's names): the (a), its budget
+    # add-on and the (c) each have a member trained at 128x128, which own photographs get
+    for name in ("tiny_baseline", "tiny_baseline_budget", "tiny_full"):
+        assert size_family(name) == {64: name, 128: f"{name}_128"}, name
+        assert fitting_checkpoint(name, None)[0] == f"{name}_128"
+        assert fitting_checkpoint(name, (64, 64)) == (name, None)
+    assert size_family("tiny_agnostic") == {64: "tiny_agnostic"}  # no sibling: as named
