@@ -16,6 +16,8 @@ from usplat_dr.jobs.render import targets
 
 
 def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene, tmp_path, capsys):
+    # own photographs get the largest shipped size of the model named: tiny_full_128 (the frames
+    # are compared with its renders below)
     images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (1, 3)]
     sparse = str(user_scene.root / "sparse" / "0")
     out = tmp_path / "out"
@@ -27,19 +29,25 @@ def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene,
     frames = sorted((out / "frames").glob("*.png"))
     assert len(frames) == 4
     assert len(list(out.glob("video.*"))) == 1
-    # pixel-aligned: one Gaussian per context pixel (2 views x 64 x 64, the checkpoint's size)
-    assert len(PlyData.read(str(out / "gaussians_frame0000.ply"))["vertex"]) == 2 * 64 * 64
+    # pixel-aligned: one Gaussian per context pixel (2 views x 128 x 128, the model's size)
+    assert len(PlyData.read(str(out / "gaussians_frame0000.ply"))["vertex"]) == 2 * 128 * 128
 
-    # the frames' colour half is what the Python API renders, to the uint8 of the PNG
-    model = usplat_dr.load("tiny_full")
-    views = context_views(images, read_cameras(sparse), (64, 64))
-    te, tk = targets("orbit", views.extrinsics, views.intrinsics, 4, (64, 64))
+    # the frames' colour half is what the Python API renders, to the uint8 of the PNG: at most
+    # one level apart in at most 0.1% of the values. At 128x128 the two calls' float32 colours
+    # differ in their last bits, so a value on a rounding boundary may land on the neighbouring
+    # level (3 of 196,608 values, 2026-11-29; at 64x64 they matched exactly; the cause, likely
+    # a different summation order in one of the two calls, is not pinned down). Another model
+    # or camera differs by tens of levels in most values.
+    model = usplat_dr.load("tiny_full_128")
+    views = context_views(images, read_cameras(sparse), (128, 128))
+    te, tk = targets("orbit", views.extrinsics, views.intrinsics, 4, (128, 128))
     pred = model.predict(views.images, intrinsics=views.intrinsics, extrinsics=views.extrinsics,
                          target_intrinsics=tk, target_extrinsics=te, near=views.near,
                          far=views.far)
     for i, png in enumerate(frames):
-        colour = np.asarray(Image.open(png))[:, :64]
-        assert np.array_equal(colour, to_uint8(pred.color[i].permute(1, 2, 0).numpy()))
+        colour = np.asarray(Image.open(png))[:, :128].astype(int)
+        diff = np.abs(colour - to_uint8(pred.color[i].permute(1, 2, 0).numpy()).astype(int))
+        assert diff.max() <= 1 and (diff > 0).mean() <= 1e-3, (diff.max(), (diff > 0).sum())
 
 
 def test_a_transforms_json_with_its_cameras_as_the_path(user_scene, tmp_path):

@@ -52,8 +52,9 @@ def own_args(truth, *extra: str) -> argparse.Namespace:
 
 @pytest.fixture(scope="module")
 def scene(truth):
-    """tiny_full and (the default comparison) tiny_baseline on two of the truth's views."""
-    return view.scene_from_args(own_args(truth))
+    """tiny_full and (the default comparison) tiny_baseline on two of the truth's views, at
+    64x64 (own images without --image-shape get the 128x128 members: tested below)."""
+    return view.scene_from_args(own_args(truth, "--image-shape", "64", "64"))
 
 
 # ---- Cameras -----------------------------------------------------------------------------
@@ -174,6 +175,15 @@ def test_while_a_render_runs_only_the_newest_camera_waits():
 
 
 # ---- One view ----------------------------------------------------------------------------
+
+def test_own_photographs_open_with_the_128x128_models(truth):
+    # no --image-shape: own images get the largest shipped size of both models, (c) beside (a)
+    wide = view.scene_from_args(own_args(truth))
+    assert wide.labels == ["(c) UniqueSplat: tiny_full_128",
+                           "(a) primary network: tiny_baseline_128"]
+    v = wide.render(wide.labels[0], *wide.start())
+    assert v.color.shape == (128, 128, 3) and v.gaussians == 2 * 128 * 128
+
 
 def test_a_view_is_what_predict_renders_for_that_camera(scene, truth):
     assert scene.labels == ["(c) UniqueSplat: tiny_full", "(a) primary network: tiny_baseline"]
@@ -399,7 +409,8 @@ def test_the_viewer_in_a_real_browser_renders_and_follows_a_mouse_drag(truth, ch
     the page orbits the camera, the model predicts the new view, and the page shows it."""
     pytest.importorskip("viser", reason="viser is not installed (the view extra: pip install "
                         "-c constraints.txt -e '.[view]')")
-    viewer = view.start(own_args(truth, "--port", "0"))  # in-process: the server's threads
+    # in-process (the server's threads), at 64x64: the readout below counts its Gaussians
+    viewer = view.start(own_args(truth, "--port", "0", "--image-shape", "64", "64"))
     try:
         page = chromium(viewer.url)
         # ---- the first view: the first context camera ----
