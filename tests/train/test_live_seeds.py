@@ -120,3 +120,29 @@ def test_a_seed_without_its_own_baseline_is_an_error(tmp_path):
     c = write_eval(tmp_path / "c", base, live=True)
     with pytest.raises(SystemExit):
         study.main(["--baseline", f"0={a}", "--seeds", f"1={c}", "--out", str(tmp_path / "o")])
+
+
+def test_fewer_live_seeds_than_registered_is_not_readable(tmp_path):
+    """Two live seeds whose rule would read "supports" are "not readable" under --min-live 3
+    (the 128x128 registration), and read as before under the default."""
+    rng = np.random.default_rng(1)
+    base = {s: 25 + rng.normal(size=8) for s in study.SPLITS}
+    a = write_eval(tmp_path / "a", base, live=False)
+    folders = [write_eval(tmp_path / f"c{k}", {s: base[s] + off + 0.01 * rng.normal(size=8)
+                                               for s in study.SPLITS}, live=True)
+               for k, off in enumerate((0.5, 0.45))]
+    seeds = [f"{k}={f}" for k, f in enumerate(folders)]
+    for extra, out in (([], tmp_path / "default"), (["--min-live", "3"], tmp_path / "three")):
+        assert study.main(["--baseline", str(a), "--seeds", *seeds, *extra,
+                           "--out", str(out)]) == 0
+    read = json.loads((tmp_path / "default" / "live_seeds.json").read_text())["labels"]
+    held = json.loads((tmp_path / "three" / "live_seeds.json").read_text())["labels"]
+    assert read["standard, all live seeds"]["label"] == "supports"
+    lab = held["standard, all live seeds"]
+    assert lab["label"].startswith("not readable: 2 live, the rule reads at 3")
+    assert "(would read supports)" in lab["label"]
+    # the numbers are the same either way; only the label waits
+    assert lab["mean"] == read["standard, all live seeds"]["mean"]
+    with pytest.raises(SystemExit):
+        study.main(["--baseline", str(a), "--seeds", *seeds, "--min-live", "0",
+                    "--out", str(tmp_path / "bad")])

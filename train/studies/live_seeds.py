@@ -18,6 +18,8 @@ counts (default standard; the paper's-protocol verdict with extrapolated targets
 extrapolation). ``--confirm`` names the seeds whose labels confirm the splits seed 0 suggested
 (wide baseline and extrapolation): those splits are labelled over them alone and over all
 seeds beside it.
+``--min-live N``: the live seeds the registered rule needs (the 128x128 verdicts: 3); with
+fewer, each label is "not readable", the numbers and what the rule would read beside it.
 ``--controls NAME=FOLDER``: other models (an (a) trained another way, say) read as control -
 (a) per split, beside the rule.
 Writes ``OUT/live_seeds.md`` and ``OUT/live_seeds.json``.
@@ -72,16 +74,21 @@ def read_baselines(parser, specs: list[str]) -> dict:
     return out
 
 
-def rule(means: list[float], scene_interval: tuple[float, float]) -> dict:
+def rule(means: list[float], scene_interval: tuple[float, float], min_live: int = 1) -> dict:
     """The verdict's rule over the live seeds' means (seed-level t interval); with one seed,
-    on that seed's interval over scenes, said in the label."""
+    on that seed's interval over scenes, said in the label. Fewer than ``min_live`` seeds:
+    the numbers are given, the label is "not readable" (a registration that asks for more)."""
     if not means:
         return {"seeds": 0, "label": "no live seed"}
     low, high = t_interval(means) if len(means) >= 2 else scene_interval
     mean = float(np.mean(means))
     label = rule_label(mean, low, high)
-    if len(means) == 1:
-        label += " (one live seed: interval over scenes)"
+    one = " (one live seed: interval over scenes)" if len(means) == 1 else ""
+    if len(means) < min_live:
+        label = (f"not readable: {len(means)} live, the rule reads at {min_live} "
+                 f"(would read {label}{one.replace(' (', '; ').rstrip(')')})")
+    else:
+        label += one
     return {"seeds": len(means), "mean": mean, "low": float(low), "high": float(high),
             "label": label}
 
@@ -101,8 +108,13 @@ def main(argv=None) -> int:
     p.add_argument("--controls", nargs="*", default=[], metavar="NAME=FOLDER",
                    help="other models' usplat eval folders (no meter needed), each read as "
                         "control - (a) per split, exploratory")
+    p.add_argument("--min-live", type=int, default=1, metavar="N",
+                   help="live seeds the registered rule needs before it labels (fewer: 'not "
+                        "readable', the numbers beside it); the 128x128 verdicts: 3")
     p.add_argument("--out", required=True, type=Path, help="folder for the table and JSON")
     args = p.parse_args(argv)
+    if args.min_live < 1:
+        p.error(f"--min-live must be at least 1, got {args.min_live}")
     baselines = read_baselines(p, args.baseline)
     seeds = {}
     for spec in args.seeds:
@@ -136,7 +148,7 @@ def main(argv=None) -> int:
             means = [seeds[n]["splits"][split]["c_minus_a"] for n in names]
             one = (seeds[names[0]]["splits"][split]["low"],
                    seeds[names[0]]["splits"][split]["high"]) if names else (np.nan, np.nan)
-            labels[f"{split}, {group}"] = {**rule(means, one), "names": names}
+            labels[f"{split}, {group}"] = {**rule(means, one, args.min_live), "names": names}
     for split in SPLITS:  # not the registered rule: every seed, live or not
         means = [s["splits"][split]["c_minus_a"] for s in seeds.values()]
         if len(means) >= 2:
