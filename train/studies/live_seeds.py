@@ -83,12 +83,12 @@ def rule(means: list[float], scene_interval: tuple[float, float], min_live: int 
     low, high = t_interval(means) if len(means) >= 2 else scene_interval
     mean = float(np.mean(means))
     label = rule_label(mean, low, high)
-    one = " (one live seed: interval over scenes)" if len(means) == 1 else ""
+    notes = ["one live seed: interval over scenes"] if len(means) == 1 else []
     if len(means) < min_live:
         label = (f"not readable: {len(means)} live, the rule reads at {min_live} "
-                 f"(would read {label}{one.replace(' (', '; ').rstrip(')')})")
-    else:
-        label += one
+                 f"(would read {'; '.join([label, *notes])})")
+    elif notes:
+        label += f" ({notes[0]})"
     return {"seeds": len(means), "mean": mean, "low": float(low), "high": float(high),
             "label": label}
 
