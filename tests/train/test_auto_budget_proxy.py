@@ -145,3 +145,10 @@ def test_a_calibration_of_another_model_or_ranking_is_refused(tmp_path, capsys):
             study.main(["--data", "unused", "--reuse", "--calibration",
                         str(cal_dir / "proxy.csv"), "--out", str(out), *extra])
         assert needle in capsys.readouterr().err
+
+
+def test_the_size_defaults_to_the_checkpoints_training_size():
+    # a 128x128 model calibrated at 64x64 would record a calibration for renders it never makes
+    assert study.image_size("tiny_baseline_128", None) == 128
+    assert study.image_size("tiny_full", None) == 64
+    assert study.image_size("tiny_full_128", 64) == 64  # as given

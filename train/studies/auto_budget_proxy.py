@@ -38,7 +38,7 @@ from usplat_dr.io import atomic_open, write_json
 from usplat_dr.model.auto_budget import AutoBudget, Calibration, choose_keep
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.uniquesplat import StudyHooks
-from usplat_dr.training.checkpoints import CHECKPOINTS, load
+from usplat_dr.training.checkpoints import CHECKPOINTS, load, training_image_shape
 
 KEEPS = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7)
 TOLERANCES = (0.1, 0.2, 0.3, 0.5, 1.0)
@@ -132,13 +132,24 @@ def choice_table(per_scene: dict, chosen_by, summary: dict, key: str) -> None:
               f"{statistics.mean(real):+.2f} | {max(real):+.2f} | {kind_text} |")
 
 
+def image_size(checkpoint: str, size: int | None) -> int:
+    """``size`` as given, else the shorter side ``checkpoint`` was trained at (64 where it
+    records none): a calibration holds at the size it was measured at."""
+    if size is not None:
+        return size
+    shape = training_image_shape(checkpoint)
+    return 64 if shape is None else min(shape)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", default="tiny_full", help="a shipped name or a file")
     p.add_argument("--rank-by", default="dither", choices=RANKINGS, help="the budget's ranking")
     p.add_argument("--data", required=True, help="held-out synthetic set (usplat synth)")
     p.add_argument("--scenes", type=int, default=20, help="first scenes of the standard split")
-    p.add_argument("--size", type=int, default=64, help="image size (the model's training size)")
+    p.add_argument("--size", type=int, default=None,
+                   help="image size (default: the size the checkpoint was trained at, 64 where "
+                   "it records none); recorded with a shipped calibration")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--calibration", type=Path, default=None,
                    help="another set's proxy.csv: calibrate the proxy there (see above)")
@@ -168,6 +179,7 @@ def main(argv=None) -> int:
                 f"wrote for another set)")
     if not 0.0 < args.quantile < 1.0:
         p.error(f"--quantile must be between 0 and 1, got {args.quantile}")
+    args.size = image_size(args.checkpoint, args.size)
     torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
