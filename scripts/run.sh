@@ -16,6 +16,9 @@
 #                                      octave up (256x256) from sets packed in .gpudata256/
 #                                      (train/studies/gpu_train.sh), scored against the
 #                                      half-size model upsampled; results in OUT
+#   bash scripts/run.sh gpu-prepare      here, for gpu-train: renders and packs .gpudata256/,
+#                                      downloads the drjit wheel into .whl/
+#                                      (train/studies/gpu_prepare.sh)
 #
 # Each command first installs what it needs, once: Debian's libllvm19 when no libLLVM >= 19 is
 # present (Dr.Jit's CPU backend; 15 and 16 crash it), a virtual environment in .venv (or
@@ -167,5 +170,6 @@ case "$command" in
     bench) setup; cd "$ROOT"; exec "$VENV/bin/python" train/bench/rasterizer.py "$@" ;;
     gpu-check) cd "$ROOT"; gpu_check "$@" ;;
     gpu-train) cd "$ROOT"; gpu_env; exec bash train/studies/gpu_train.sh "$@" ;;
-    *) sed -n '2,22p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
+    gpu-prepare) setup; cd "$ROOT"; PYTHON="$VENV/bin/python" exec bash train/studies/gpu_prepare.sh ;;
+    *) sed -n '2,25p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//' >&2; exit 2 ;;
 esac

@@ -57,4 +57,4 @@ def test_the_gpu_training_job_says_what_is_missing(tmp_path):
     proc = subprocess.run(["bash", str(SCRIPT), str(tmp_path / "out")], env=env,
                           capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 2
-    assert "carry_sets.py" in proc.stdout and "none/train" in proc.stdout
+    assert "gpu-prepare" in proc.stdout and "none/train" in proc.stdout

@@ -6,10 +6,13 @@
 # and brings back its whole state, a shippable .pt and the scores (train/studies/README.md,
 # "Four times the pixels").
 #
+#   bash scripts/run.sh gpu-prepare     # here: renders and packs .gpudata256, fetches .whl
+#   bash scripts/run.sh gpu-train OUT [SECONDS] [STEPS]     # on the GPU machine
+#
+# gpu-prepare (train/studies/gpu_prepare.sh) packs the registered sets as
 #   python train/studies/carry_sets.py pack --out .gpudata256 --jpeg-quality 90 --chroma 420 \
 #       train=outputs/big256/train16/train:12:jpeg
 #   python train/studies/carry_sets.py pack --out .gpudata256 heldout=outputs/big256/test5000:8:jpeg
-#   bash scripts/run.sh gpu-train OUT [SECONDS] [STEPS]     # on the GPU machine
 #
 # SECONDS (default 300): the training's wall-time limit (it stops at STEPS, default 100000, or
 # at the limit; its state is written every CHECKPOINT_EVERY steps, default 50, and the last one
@@ -35,7 +38,7 @@ mkdir -p "$OUT" "$WORK"
 OUT=$(cd "$OUT" && pwd)
 [ -d "$DATA/train" ] && [ -d "$DATA/heldout" ] \
   || { echo "gpu-train: $DATA/train and $DATA/heldout are missing: pack them with" \
-            "train/studies/carry_sets.py (see the top of $0)"; exit 2; }
+            "bash scripts/run.sh gpu-prepare (see the top of $0)"; exit 2; }
 $PY train/studies/carry_sets.py unpack "$DATA" || exit 1
 start=$(date +%s)
 timeout -s INT "$SECONDS_TRAIN" $PY -m usplat_dr train --config synthetic_tiny_depth.yaml \
