@@ -246,17 +246,20 @@ def test_shipped_models_carry_their_calibration(model):
     assert set(budget.auto_calibration) == {"dither", "learned"}
 
 
-@pytest.mark.parametrize("name, rankings", [("tiny_baseline_128", {"dither"}),
-                                             ("tiny_full_128", {"dither"}),
-                                             ("tiny_baseline_budget_128", {"dither", "learned"})])
-def test_the_128x128_models_carry_calibrations_measured_at_128(name, rankings):
+@pytest.mark.parametrize("name, rankings, size", [
+    ("tiny_baseline_budget", {"dither", "learned"}, 64),
+    ("tiny_baseline_128", {"dither"}, 128),
+    ("tiny_full_128", {"dither"}, 128),
+    ("tiny_baseline_budget_128", {"dither", "learned"}, 128)])
+def test_the_budget_and_128x128_models_carry_calibrations_at_their_size(name, rankings, size):
     # a 64x64 calibration would be warned about at every 128x128 render; none, logged and
-    # uncalibrated: each 128x128 model holds its own, from the 128x128 development set
+    # uncalibrated: each model holds its own, from the development set at its training size
     found = load(name).auto_calibration
     assert set(found) == rankings
     for calibration in found.values():
-        assert calibration.size == 128
-        assert calibration.data.startswith("outputs/big128/test2000")
+        assert calibration.size == size
+        folder = "big" if size == 64 else f"big{size}"
+        assert calibration.data.startswith(f"outputs/{folder}/test2000")
 
 
 def test_a_checkpoint_file_of_your_own_carries_its_calibration(tmp_path):
