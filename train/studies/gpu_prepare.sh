@@ -11,9 +11,10 @@
 # Environment: SIZE (default 256), DATA (where the sets are rendered, default outputs/big256;
 # sets already there are kept), GPUDATA (default .gpudata256, made anew), TRAIN_SCENES and
 # HELDOUT_SCENES (default 12 and 8 packed, of the 16 and 12 rendered), FRAMES (default 24),
-# JOBS (rendering processes, default 2), SYNTH_ARGS (more `usplat synth` arguments), WHEEL (default 1; 0: no wheel, as the CPU test does),
-# WHEEL_PYTHON (the GPU machine's Python, default 3.12), LIMIT_MB (what may travel, default
-# 67.1, 64 MiB), PYTHON. 4 min 13 s on two AVX-512 cores (2026-11-30), rendering most of it.
+# JOBS (rendering processes, default 2), SYNTH_ARGS (more `usplat synth` arguments), WHEEL
+# (default 1; 0: no wheel, as the CPU test does), WHEEL_PYTHON (the GPU machine's Python,
+# default 3.12), LIMIT_MB (what may travel, default 67.1, 64 MiB), PYTHON. 4 min 13 s on two
+# AVX-512 cores (2026-11-30), rendering most of it.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 cd "$ROOT"
@@ -75,6 +76,11 @@ if [ "${WHEEL:-1}" != 0 ]; then
 fi
 
 # what travels: the tracked files, the wheels, the packed sets
+if ! git rev-parse --is-inside-work-tree >/dev/null 2>&1; then
+    echo "gpu-prepare: ready, but not in a git checkout: what travels (the tracked files," \
+         "$GPUDATA and .whl) is not weighed"
+    exit 0
+fi
 tracked=$(git ls-files -z | xargs -0 stat -c %s | awk '{s += $1} END {print s + 0}')
 extra=$(du -sb "$GPUDATA" $([ -d .whl ] && echo .whl) | awk '{s += $1} END {print s + 0}')
 awk -v t="$tracked" -v e="$extra" -v limit="${LIMIT_MB:-67.1}" -v packed="$GPUDATA" 'BEGIN {
