@@ -9,9 +9,9 @@
 #   bash scripts/run.sh gpu-train OUT      # [".gpudata256", ".whl"]
 #
 # Environment: SIZE (default 256), DATA (where the sets are rendered, default outputs/big256;
-# sets already there are kept), GPUDATA (default .gpudata256, made anew), TRAIN_SCENES and
-# HELDOUT_SCENES (default 12 and 8 packed, of the 16 and 12 rendered), FRAMES (default 24),
-# JOBS (rendering processes, default 2), SYNTH_ARGS (more `usplat synth` arguments), WHEEL
+# a set already there with the same stage, scenes, seed, size and frames is kept), GPUDATA
+# (default .gpudata256, made anew), TRAIN_SCENES and HELDOUT_SCENES (default 12 and 8 packed,
+# of the 16 and 12 rendered), FRAMES (default 24), JOBS (rendering processes, default 2), SYNTH_ARGS (more `usplat synth` arguments), WHEEL
 # (default 1; 0: no wheel, as the CPU test does), WHEEL_PYTHON (the GPU machine's Python,
 # default 3.12), LIMIT_MB (what may travel, default 67.1, 64 MiB), PYTHON. 4 min 13 s on two
 # AVX-512 cores (2026-11-30), rendering most of it.
@@ -34,10 +34,24 @@ if [ "$SIZE" != 256 ]; then  # a small trial (the CPU test) renders only what it
     RENDER_TRAIN=$TRAIN_SCENES; RENDER_HELDOUT=$HELDOUT_SCENES
 fi
 
-render() {  # FOLDER STAGE SCENES SEED: usplat synth, unless FOLDER already holds that set
-    local folder=$1 stage=$2 scenes=$3 seed=$4
-    local made="$stage $scenes $seed $SIZE $FRAMES ${SYNTH_ARGS:-}"
-    if [ -f "$folder/.complete" ] && [ "$(cat "$folder/.complete")" = "$made" ]; then
+render() {  # FOLDER STAGE SCENES SEED: usplat synth, unless FOLDER's synth.json (written
+    local folder=$1 stage=$2 scenes=$3 seed=$4  # last) records this set already
+    if $PY - "$folder" "$stage" "$scenes" "$seed" "$SIZE" "$FRAMES" <<'EOF'
+import json
+import sys
+
+from usplat_dr.data.chunks import metadata_folder
+
+folder, stage, scenes, seed, size, frames = sys.argv[1:]
+try:
+    made = json.loads((metadata_folder(folder, stage) / "synth.json").read_text())
+except (OSError, ValueError):
+    sys.exit(1)
+wanted = {"stage": stage, "scenes": int(scenes), "seed": int(seed), "frames": int(frames),
+          "resolution": [int(size), int(size)]}
+sys.exit(any(made.get(k) != v for k, v in wanted.items()))
+EOF
+    then
         echo "gpu-prepare: $folder is there ($stage, $scenes scenes, seed $seed, ${SIZE}x$SIZE)"
         return
     fi
@@ -45,7 +59,6 @@ render() {  # FOLDER STAGE SCENES SEED: usplat synth, unless FOLDER already hold
     $PY -m usplat_dr synth --out "$folder" --stage "$stage" --scenes "$scenes" \
         --frames "$FRAMES" --image-shape "$SIZE" "$SIZE" --seed "$seed" --jobs "$JOBS" \
         ${SYNTH_ARGS:-}
-    echo "$made" > "$folder/.complete"
 }
 
 render "$DATA/test5000" test "$RENDER_HELDOUT" 5000
