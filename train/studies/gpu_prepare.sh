@@ -11,10 +11,11 @@
 # Environment: SIZE (default 256), DATA (where the sets are rendered, default outputs/big256;
 # a set already there with the same stage, scenes, seed, size and frames is kept), GPUDATA
 # (default .gpudata256, made anew), TRAIN_SCENES and HELDOUT_SCENES (default 12 and 8 packed,
-# of the 16 and 12 rendered), FRAMES (default 24), JOBS (rendering processes, default 2), SYNTH_ARGS (more `usplat synth` arguments), WHEEL
-# (default 1; 0: no wheel, as the CPU test does), WHEEL_PYTHON (the GPU machine's Python,
-# default 3.12), LIMIT_MB (what may travel, default 67.1, 64 MiB), PYTHON. 4 min 13 s on two
-# AVX-512 cores (2026-11-30), rendering most of it.
+# of the 16 and 12 rendered), FRAMES (default 24), JOBS (rendering processes, default 2),
+# SYNTH_ARGS (more `usplat synth` arguments), WHEEL (default 1; 0: no wheel, as the CPU test
+# does), WHEEL_PYTHON (the GPU machine's Python, default 3.12), LIMIT_MB (what may travel,
+# default 67.1, 64 MiB), PYTHON. 4 min 13 s on two AVX-512 cores (2026-11-30), rendering most
+# of it.
 set -euo pipefail
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 cd "$ROOT"
