@@ -6,6 +6,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -67,10 +68,27 @@ def test_evaluate_follows_the_protocol_and_writes_files(tmp_path, device, protoc
     # the material maps reach the example (the shiny and matte PSNRs' masks)
     assert example["target"]["material"].shape == example["target"]["depth"].shape
     assert rows[0]["psnr_matte"] != ""  # indoor rooms: matte walls in every view
+    # copying the nearest context view, recomputed in float64 numpy from the example
+    ctx, tgt = batch["context"], batch["target"]
+    ref = []
+    for j in range(tgt["image"].shape[1]):
+        dist = [np.linalg.norm(tgt["extrinsics"][0, j, :3, 3].double().numpy()
+                               - ctx["extrinsics"][0, i, :3, 3].double().numpy())
+                for i in range(ctx["image"].shape[1])]
+        diff = (ctx["image"][0, int(np.argmin(dist))].double().numpy()
+                - tgt["image"][0, j].double().numpy())
+        ref.append(-10 * np.log10(np.mean(diff ** 2)))
+    # float32 PSNR per target against float64: 1e-4 relative covers the MSE's rounding
+    assert float(rows[0]["psnr_copy"]) == pytest.approx(np.mean(ref), rel=1e-4)
+    assert float(rows[0]["psnr_over_copy"]) == pytest.approx(
+        float(rows[0]["psnr"]) - float(rows[0]["psnr_copy"]), abs=1e-9)
     assert (tmp_path / "eval" / "renders" / "standard" / f"{example['scene']}.png").is_file()
     saved = json.loads((tmp_path / "eval" / "summary.json").read_text())
     assert saved["parameters"] == sum(p.numel() for p in model.parameters())
     assert saved["prune"] == "none" and saved["image_shape"] == [32, 32]
+    std = saved["splits"]["standard"]
+    assert std["psnr_over_copy"] == pytest.approx(std["psnr"] - std["psnr_copy"], abs=1e-9)
+    assert 0 <= std["scenes_over_copy"] <= std["scenes"]
     with pytest.raises(FileNotFoundError, match="usplat train writes"):
         load_model(tmp_path / "missing.ckpt")
 

@@ -170,7 +170,8 @@ def demo_results(out: Path, stable: dict):
             (renders / f"{scene}.png").write_bytes(b"")
 
     def split(psnr):
-        return {"psnr": psnr, "ssim": 0.5, "abs_rel": 0.1, "scenes": 3}
+        return {"psnr": psnr, "ssim": 0.5, "abs_rel": 0.1, "scenes": 3, "psnr_copy": 19.0,
+                "psnr_over_copy": psnr - 19.0, "scenes_over_copy": 2}
 
     summaries = {v: {"parameters": 1.7e6, "time_per_scene_s": 0.12, "peak_memory_gib": 0.5,
                      "splits": {"standard": split(20.0 + i), "wide": split(18.0)}}
@@ -224,6 +225,7 @@ def test_write_report_writes_a_section_each(tmp_path):
     assert "\n\n\n" not in text  # sections one blank line apart
     assert "| (c) UniqueSplat | view-specific H_s | 0.045 | 0.08 |" in text
     assert "| wide | 3 | 18.00 / 0.500 / 0.100 |" in text
+    assert "| 20.00 | +1.00 dB (19.00; 2 of 3) | 0.500 |" in text  # the margin over copying
     # the meter: the shipped (c) and the fine-tuned one (the same summary here), not live
     assert text.count("| 3 | 4.2e-06 | 0.0001 dB [0.0000, 0.0001] | +0.0060 dB [-0.0058, "
                       "+0.0177] | no |") == 2

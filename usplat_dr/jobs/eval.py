@@ -10,6 +10,7 @@ import torch
 
 from usplat_dr.evaluation import evaluate, synthetic_indices
 from usplat_dr.evaluation.lpips import LPIPS
+from usplat_dr.evaluation.protocol import copy_line
 from usplat_dr.jobs.arguments import (
     CHECKPOINT_HELP,
     DATASET_HELP,
@@ -110,6 +111,9 @@ def run(args: argparse.Namespace) -> int:
                        provenance=record,
                        budget=make_budget(args.gaussians, args.rank_by, args.tolerance))
     print(json.dumps(summary, indent=1))
+    for split, metrics in summary["splits"].items():  # the margin over the trivial predictor
+        if metrics["scenes"]:
+            print(copy_line(split, metrics))
     if not any(split["scenes"] for split in summary["splits"].values()):
         first = next(iter(summary["splits"].items()))
         raise ValueError(f"--data {args.data}: no scene was scored ({first[0]}: "
