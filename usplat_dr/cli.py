@@ -23,6 +23,8 @@ COMMANDS = {
               "format, with evaluation and stress splits"),
     "import": ("a COLMAP model or a nerfstudio transforms.json (and its images) into the chunk "
                "format, with an evaluation index"),
+    "pose": ("photos without cameras posed by COLMAP (pycolmap) into a COLMAP model folder that "
+             "import, render and view read"),
     "train": ("train UniqueSplat (any variant) with the field's recipe; also under torchrun "
               "(DistributedDataParallel)"),
     "eval": ("evaluate a trained model with the field's protocol (per-scene CSV, summary JSON, "

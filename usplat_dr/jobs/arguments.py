@@ -49,6 +49,25 @@ positive_int = at_least(1)
 non_negative_int = at_least(0)
 
 
+def positive_float(text: str) -> float:
+    """An argparse ``type``: a finite number > 0.
+
+    Examples:
+        >>> positive_float("2.5")
+        2.5
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
+
+
+positive_float.__name__ = "number > 0"  # argparse names the type in its message
+
+
 def gaussians_argument(text: str) -> int | float | str:
     """An argparse ``type`` for ``--gaussians``: a count (an integer >= 1), a fraction in
     (0, 1] of the model's Gaussians (``0.3`` or ``30%``; ``1`` is one Gaussian, ``1.0`` all)

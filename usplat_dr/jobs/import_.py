@@ -7,20 +7,12 @@ import json
 from pathlib import Path
 
 from usplat_dr.data.importers import import_scene, read_colmap, read_nerfstudio
-from usplat_dr.jobs.arguments import add_image_shape_option, non_negative_int, out_folder
-
-
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = None
-    if value is None or not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
-    return value
-
-
-positive_float.__name__ = "number > 0"  # argparse names the type in its message
+from usplat_dr.jobs.arguments import (
+    add_image_shape_option,
+    non_negative_int,
+    out_folder,
+    positive_float,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -27,6 +27,7 @@ from usplat_dr.data.user_views import (
 )
 from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.camera_paths import camera_path
+from usplat_dr.geometry.plane_sweep import near_far_from_sweep
 from usplat_dr.io.images import colorize_depth, save_png
 from usplat_dr.io.video import write_video
 from usplat_dr.jobs.arguments import (
@@ -37,6 +38,7 @@ from usplat_dr.jobs.arguments import (
     at_least,
     check_budget_arguments,
     out_folder,
+    positive_float,
     positive_int,
 )
 from usplat_dr.model.ply import write_ply
@@ -135,41 +137,96 @@ def add_own_views_arguments(p: argparse.ArgumentParser) -> None:
     """The arguments naming a user's own context views (``render``, ``view``)."""
     own = p.add_argument_group("your own context views (instead of --data)")
     own.add_argument("--images", nargs="+", metavar="IMAGE",
-                     help="two (or more) context images, named as in --cameras")
+                     help="two (or more) context images, named as in --cameras (without "
+                     "--cameras they are posed by COLMAP first: usplat pose)")
     own.add_argument("--cameras", help="their cameras: a COLMAP model folder (sparse/0) or a "
-                     "nerfstudio transforms.json")
-    own.add_argument("--near", type=float, help="near depth, scene units (default: from the "
-                     "COLMAP model's sparse points; required with a transforms.json)")
-    own.add_argument("--far", type=float, help="far depth (as --near)")
+                     "nerfstudio transforms.json (default: pose the images with COLMAP)")
+    add_near_far_arguments(own, "from the COLMAP model's sparse points, else estimated by a "
+                           "plane sweep between the two context views")
     own.add_argument("--ignore-distortion", action="store_true",
                      help="drop lens distortion coefficients (else they are an error)")
 
 
+def add_near_far_arguments(p, default: str) -> None:
+    """``--near`` and ``--far`` (scene units), ``default`` saying where they come from
+    otherwise."""
+    p.add_argument("--near", type=positive_float, help=f"near depth, scene units (default: "
+                   f"{default})")
+    p.add_argument("--far", type=positive_float, help="far depth (as --near)")
+
+
 def check_own_views(args: argparse.Namespace) -> None:
     """The mistakes in ``add_own_views_arguments``' arguments that need no file read."""
-    if args.cameras is None:
-        raise ValueError("--images needs --cameras FILE (a COLMAP model folder or a "
-                         "transforms.json)")
+    check_near_far(args)
+
+
+def check_near_far(args: argparse.Namespace) -> None:
     if (args.near is None) != (args.far is None):
         raise ValueError("give both --near and --far, or neither")
+    if args.near is not None and not args.near < args.far:
+        raise ValueError(f"--near must be below --far, got {args.near} and {args.far}")
 
 
-def own_views(args: argparse.Namespace, trained_range: list[float] | None = None
-              ) -> tuple[UserViews, float, float]:
-    """The context views ``--images`` and ``--cameras`` name, cropped to ``image_shape``, and
-    near/far (``--near``/``--far``, else from the sparse points), with a warning when they lie
-    far outside ``trained_range`` (the model's ``trained_depth_range``)."""
+def pose_own_images(args: argparse.Namespace, folder: Path) -> None:
+    """``--images`` without ``--cameras``: the images posed by COLMAP into ``folder``
+    (``usplat_dr.data.pose``; reused when it already holds these photos' poses), then
+    ``args.cameras`` its model and ``args.images`` its undistorted copies."""
+    from usplat_dr import _threads
+    from usplat_dr.data.pose import PoseSettings, pose_photos, posed_before
+
+    photos = [Path(p) for p in args.images]
+    result = posed_before(photos, folder)
+    if result is None:
+        print(f"no --cameras: posing the {len(photos)} photos with COLMAP (pycolmap) into "
+              f"{folder} (usplat pose does this alone)")
+        result = pose_photos(photos, folder, PoseSettings(threads=_threads.choose().threads))
+    else:
+        print(f"no --cameras: using the poses of these photos in {folder}")
+    print(result.line())
+    missing = [p.name for p in photos if p.name not in result.registered]
+    if missing:
+        raise ValueError(f"COLMAP could not pose {', '.join(missing)} (pose.json in {folder} "
+                         "says why): give --cameras, or more photos of the scene with "
+                         "usplat pose")
+    args.cameras = str(result.model)
+    args.images = [str(result.images / p.name) for p in photos]
+
+
+def own_views(args: argparse.Namespace, trained_range: list[float] | None = None,
+              pose_folder: Path | None = None) -> tuple[UserViews, float, float]:
+    """The context views ``--images`` and ``--cameras`` name (posed first into
+    ``pose_folder`` without ``--cameras``: ``pose_own_images``), cropped to ``image_shape``,
+    and near/far (``--near``/``--far``, else from the sparse points, else estimated by a
+    plane sweep between the first two views), printed, with a warning when they lie far
+    outside ``trained_range`` (the model's ``trained_depth_range``)."""
     check_own_views(args)
+    if args.cameras is None:
+        from usplat_dr.data.pose import default_pose_folder
+
+        pose_own_images(args, pose_folder or default_pose_folder(args.images))
+        posed = True
+    else:
+        posed = False
     views = context_views(args.images, read_cameras(args.cameras, args.ignore_distortion),
                           image_shape(args))
-    near, far = (args.near, args.far) if args.near is not None else (views.near, views.far)
-    if near is None:
-        raise ValueError(f"--cameras {args.cameras} has no sparse points to set near/far from: "
-                         f"give --near and --far (scene units)")
+    if args.near is not None:
+        near, far, where = args.near, args.far, "--near/--far"
+    elif views.near is not None:
+        near, far = views.near, views.far
+        where = "from the sparse points; --near/--far to set it"
+    else:
+        near, far = near_far_from_sweep(
+            [im.permute(1, 2, 0).numpy() for im in views.images[:2]],
+            list(views.intrinsics[:2].double().numpy()),
+            list(views.extrinsics[:2].double().numpy()))
+        where = ("no sparse points: estimated by a plane sweep between the two context "
+                 "views; --near/--far to set it")
+    if posed:
+        baseline = float((views.extrinsics[0, :3, 3] - views.extrinsics[1, :3, 3]).norm())
+        where += (f"; COLMAP's scale is arbitrary: the context cameras are {baseline:.3g} "
+                  "units apart")
     # the range matters (2-3 dB against the one a scene was trained with, docs/data.md): say it
-    print(f"near/far {near:.4g} / {far:.4g} ("
-          + ("--near/--far" if args.near is not None else
-             "from the sparse points; --near/--far to set it") + ")")
+    print(f"near/far {near:.4g} / {far:.4g} ({where})")
     warning = depth_range_warning(near, far, trained_range)
     if warning:
         log.warning(warning)
@@ -271,7 +328,7 @@ def predict_own_views(model, args: argparse.Namespace) -> Prediction:
     """``--images`` and ``--cameras``: the model's ``Prediction`` for ``--path``, predicted
     ``PATH_CHUNK`` targets at a time, ``gaussians`` holding the first target's only (what
     ``run`` writes as a PLY)."""
-    views, near, far = own_views(args, model.trained_depth_range)
+    views, near, far = own_views(args, model.trained_depth_range, Path(args.out) / "pose")
     te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames,
                      tuple(views.images.shape[-2:]))
     if len(te) > MAX_PATH_CAMERAS:
