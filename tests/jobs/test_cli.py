@@ -31,7 +31,7 @@ def test_every_option_of_every_command_has_help_and_commands_run_in_workflow_ord
                     if not a.help and not isinstance(a, argparse._HelpAction)]
     assert not missing, missing
     # what a user does first comes first in `usplat --help`
-    assert list(COMMANDS) == ["demo", "synth", "import", "train", "eval", "render", "view",
+    assert list(COMMANDS) == ["demo", "synth", "import", "pose", "train", "eval", "render", "view",
                               "export-ply", "bench", "fit", "params", "render-demo", "doctor"]
 
 

@@ -107,12 +107,18 @@ def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp
 
 @pytest.mark.parametrize("extra, needle", [
     ([], "give --data (a dataset in the chunk format) or --images A B --cameras FILE"),
-    (["--images", "{a}", "{b}"], "--images needs --cameras FILE"),
-    (["--images", "{a}", "{b}", "--cameras", "{json}"], "has no sparse points to set near/far"),
+    # without --cameras the photos are posed by COLMAP first: random noise images share no
+    # feature, so none registers, and the message says which and why
+    (["--images", "{a}", "{b}"], "COLMAP registered 0 of 2 photos"),
+    # a transforms.json holds no sparse points: near/far come from a plane sweep, which finds
+    # no match between two unrelated noise images and asks for them
+    (["--images", "{a}", "{b}", "--cameras", "{json}"],
+     "match at 0 of 18432 pixels (textureless, or not overlapping): give --near and --far"),
     (["--images", "{a}", "{b}", "--cameras", "{json}", "--near", "1"],
      "give both --near and --far"),
 ])
-def test_mistakes_name_the_argument(user_scene, capsys, extra, needle):
+def test_mistakes_name_the_argument(user_scene, capsys, monkeypatch, tmp_path, extra, needle):
+    monkeypatch.chdir(tmp_path)  # the default --out (outputs/render, its pose/ folder) is here
     fill = {"{a}": str(user_scene.root / "images" / user_scene.names[0]),
             "{b}": str(user_scene.root / "images" / user_scene.names[1]),
             "{json}": str(user_scene.root / "transforms.json")}

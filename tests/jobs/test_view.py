@@ -250,7 +250,8 @@ def test_a_dataset_scene_seen_from_its_context_cameras_shows_their_images(protoc
     (["--checkpoint", "tiny_full"], "give --data (a dataset in the chunk format) or --images"),
     (["--checkpoint", "tiny_full", "--data", "d", "--images", "a", "b"], "one of them"),
     (["--ply", "g.ply", "--checkpoint", "tiny_full"], "give --ply FILE alone"),
-    (["--checkpoint", "tiny_full", "--images", "a", "b"], "--images needs --cameras FILE"),
+    # without --cameras the photos are posed first (usplat pose): named when missing
+    (["--checkpoint", "tiny_full", "--images", "a", "b"], "photo a does not exist"),
     (["--checkpoint", "tiny_full", "--images", "a", "b", "--cameras", "c", "--near", "1"],
      "give both --near and --far"),
     (["--checkpoint", "tiny_full", "--port", "70000"], "--port must be in 0..65535"),

@@ -15,7 +15,8 @@ The result is COLMAP's dense workspace layout::
 ``usplat import --colmap OUT`` finds ``OUT/sparse`` and ``OUT/images``; ``usplat render
 --cameras OUT/sparse --images OUT/images/a.jpg OUT/images/b.jpg`` and ``usplat view`` read
 them the same way. One shared camera is solved when the photos' EXIF names one camera
-(make, model, focal length) and one size; otherwise one camera per photo (internet photos).
+(make, model, focal length) and one size, or when none names a camera and all share a size
+(video frames, renders); otherwise one camera per photo (internet photos).
 
 The scale of the world is COLMAP's, arbitrary: scene units mean nothing in metres, and
 near/far come from the sparse points.
@@ -31,10 +32,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from usplat_dr.io import write_json
-from usplat_dr.io.user_files import read_image, regular_file, sha256
+from usplat_dr.io.user_files import open_image, read_bytes, read_image, regular_file, sha256
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +42,8 @@ log = logging.getLogger(__name__)
 EXHAUSTIVE_UP_TO = 100
 #: Photos one call may pose (exhaustive matching grows with the square of the count).
 MAX_PHOTOS = 2000
+#: Bytes one photo may hold (the bound of ``io.user_files`` for images).
+MAX_PHOTO_BYTES = 256 * 2**20
 #: EXIF tags that name a camera: Make, Model (IFD0) and FocalLength (the Exif IFD).
 EXIF_MAKE, EXIF_MODEL, EXIF_IFD, EXIF_FOCAL = 0x010F, 0x0110, 0x8769, 0x920A
 
@@ -53,7 +55,7 @@ class PoseSettings:
     ``matching``: ``"exhaustive"`` (every pair), ``"sequential"`` (each photo with its
     ``overlap`` neighbours in name order: video frames) or ``"auto"`` (exhaustive up to
     ``EXHAUSTIVE_UP_TO`` photos). ``camera``: ``"single"`` (one camera for all),
-    ``"per-image"`` or ``"auto"`` (single when the EXIF says one camera). ``max_image_size``:
+    ``"per-image"`` or ``"auto"`` (``one_camera``). ``max_image_size``:
     the long side SIFT sees (COLMAP's default is 3200; 1600 keeps phone photos fast).
     ``seed``: COLMAP's random seed (RANSAC, mapping). ``threads``: -1 for every core."""
 
@@ -102,7 +104,7 @@ class PoseResult:
 
 
 def _pycolmap():
-    try:
+    try:  # an optional extra (usplat-dr[pose]): imported where posing is asked for
         import pycolmap
     except ImportError:
         raise ValueError("posing photos needs pycolmap (COLMAP's Python bindings): pip install "
@@ -114,18 +116,23 @@ def _pycolmap():
 def exif_camera(path: Path) -> tuple:
     """(make, model, focal length, width, height) of a photo from its EXIF and header;
     missing tags are None."""
-    with Image.open(path) as im:
-        exif = im.getexif()
-        focal = exif.get_ifd(EXIF_IFD).get(EXIF_FOCAL)
-        return (exif.get(EXIF_MAKE), exif.get(EXIF_MODEL),
-                None if focal is None else float(focal), *im.size)
+    im = open_image(read_bytes(path, "photo", MAX_PHOTO_BYTES), f"photo {path}")
+    exif = im.getexif()
+    focal = exif.get_ifd(EXIF_IFD).get(EXIF_FOCAL)
+    return (exif.get(EXIF_MAKE), exif.get(EXIF_MODEL),
+            None if focal is None else float(focal), *im.size)
 
 
 def one_camera(paths: list[Path]) -> bool:
     """Whether the photos were taken by one camera: the same EXIF make, model and focal
-    length (all present) and the same size."""
+    length and the same size, or, none of them carrying a make or model (frames of a video,
+    renders, screenshots), the same size. Photos of several cameras (internet photos) carry
+    their EXIF or differ in size."""
     seen = {exif_camera(p) for p in paths}
-    return len(seen) == 1 and None not in next(iter(seen))[:2]
+    if len(seen) == 1:
+        return True
+    return all(make is None and model is None for make, model, *_ in seen) and len(
+        {size for *_, w, h in seen for size in [(w, h)]}) == 1
 
 
 def gather_photos(photos: list[Path], folder: Path) -> list[str]:
@@ -133,7 +140,7 @@ def gather_photos(photos: list[Path], folder: Path) -> list[str]:
     Two photos of one name (from two folders) are an error naming both."""
     by_name: dict[str, Path] = {}
     for p in photos:
-        regular_file(p, "photo", 256 * 2**20)
+        regular_file(p, "photo", MAX_PHOTO_BYTES)
         if p.name in by_name and by_name[p.name].resolve() != p.resolve():
             raise ValueError(f"two photos are named {p.name!r} ({by_name[p.name]} and {p}): "
                              "COLMAP names images by file name; rename one")
@@ -338,7 +345,7 @@ def pose_photos(photos: list[str | os.PathLike], out: str | os.PathLike,
 
 def photo_hashes(photos: list[Path]) -> list[str]:
     """The sha256 of each photo's bytes (what ``posed_before`` compares)."""
-    return [sha256(p, "photo", 256 * 2**20) for p in photos]
+    return [sha256(p, "photo", MAX_PHOTO_BYTES) for p in photos]
 
 
 def posed_before(photos: list[Path], out: str | os.PathLike) -> PoseResult | None:

@@ -24,8 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="feature matching: every pair, or each photo with its neighbours in "
                    "name order (video frames); auto: exhaustive up to 100 photos")
     p.add_argument("--camera", default="auto", choices=["auto", "single", "per-image"],
-                   help="one camera for every photo, or one each; auto: single when the EXIF "
-                   "names one camera and the photos share a size")
+                   help="one camera for every photo, or one each; auto: single when the photos "
+                   "share a size and their EXIF names one camera or none")
     p.add_argument("--max-image-size", type=at_least(64), default=1600,
                    help="the long side, in pixels, SIFT extracts features at")
     p.add_argument("--seed", type=int, default=0, help="COLMAP's random seed")

@@ -171,7 +171,7 @@ def pose_own_images(args: argparse.Namespace, folder: Path) -> None:
     """``--images`` without ``--cameras``: the images posed by COLMAP into ``folder``
     (``usplat_dr.data.pose``; reused when it already holds these photos' poses), then
     ``args.cameras`` its model and ``args.images`` its undistorted copies."""
-    from usplat_dr import _threads
+    from usplat_dr import _threads  # (with pycolmap, only where photos are posed)
     from usplat_dr.data.pose import PoseSettings, pose_photos, posed_before
 
     photos = [Path(p) for p in args.images]
@@ -201,7 +201,7 @@ def own_views(args: argparse.Namespace, trained_range: list[float] | None = None
     outside ``trained_range`` (the model's ``trained_depth_range``)."""
     check_own_views(args)
     if args.cameras is None:
-        from usplat_dr.data.pose import default_pose_folder
+        from usplat_dr.data.pose import default_pose_folder  # only where photos are posed
 
         pose_own_images(args, pose_folder or default_pose_folder(args.images))
         posed = True

@@ -51,7 +51,7 @@ __all__ = ["APPEARANCES", "DEFAULT_SEEDS", "KINDS", "SPLITS", "check_stages_disj
 
 
 #: Samples per pixel by appearance (``synthesize``'s default).
-DEFAULT_SPP = {"diffuse": 64, "view-dependent": 256, "rough-glossy": 256}
+DEFAULT_SPP = {"diffuse": 64, "view-dependent": 256, "rough-glossy": 256, "photographic": 64}
 
 #: The seed of each stage when none is given: different, so that a train and a test set made
 #: without ``--seed`` share no scene (test keeps 0, the seed its default always had).
@@ -73,11 +73,14 @@ def default_seed(stage: str) -> int:
     return DEFAULT_SEEDS[stage]
 
 
+#: Scene keys' suffix by appearance (none for the diffuse one).
+APPEARANCE_SUFFIXES = {"view-dependent": "_vd", "rough-glossy": "_rg", "photographic": "_ph"}
+
+
 def scene_key(kind: str, seed: int, i: int, appearance: str = "diffuse") -> str:
     """The key of scene ``i`` of a set made with ``seed``: ``<kind>_<seed>_<i:05d>`` (``_vd``
     for the view-dependent appearance, ``_rg`` for the rough-glossy one)."""
-    return f"{kind}_{seed}_{i:05d}" + {"view-dependent": "_vd", "rough-glossy": "_rg"}.get(
-        appearance, "")
+    return f"{kind}_{seed}_{i:05d}" + APPEARANCE_SUFFIXES.get(appearance, "")
 
 
 def check_stages_disjoint(out: str | os.PathLike, stage: str, keys: list[str]) -> None:
@@ -86,7 +89,9 @@ def check_stages_disjoint(out: str | os.PathLike, stage: str, keys: list[str]) -
     seed and scene number, so the same scene; ``_vd`` aside, the same geometry and cameras):
     training on test scenes would make the evaluation score memorised scenes."""
     def base(key: str) -> str:
-        return key.removesuffix("_vd")
+        for suffix in APPEARANCE_SUFFIXES.values():
+            key = key.removesuffix(suffix)
+        return key
 
     wanted = {base(k) for k in keys}
     for other in STAGES:

@@ -9,13 +9,16 @@ scene; camera-space z, ``+inf`` where the ray misses. The colour image comes fro
 sensor; the tests pin that both agree (``tests/data/test_conventions.py``).
 """
 
+import io
 import math
 
 import numpy as np
+from PIL import Image
 
 from usplat_dr.data.synth.scenes import terrain_grid
 from usplat_dr.data.synth.textures import make_environment, make_texture
 from usplat_dr.geometry.cameras import opencv_c2w_to_mitsuba, pixel_directions
+from usplat_dr.io.user_files import open_image, rgb8
 
 # Material classes in the per-pixel material map.
 MISS, TEXTURED, PLAIN, GLOSSY, CONDUCTOR = 0, 1, 2, 3, 4
@@ -24,6 +27,9 @@ MATERIAL_CODES = {"textured": TEXTURED, "plain": PLAIN, "glossy": GLOSSY,
 #: The two families the metrics and the meter separate: surfaces whose appearance changes with
 #: the viewpoint (glossy, metal) and those whose appearance does not (textured, plain).
 SHINY, MATTE = (GLOSSY, CONDUCTOR), (TEXTURED, PLAIN)
+
+#: The gains auto exposure may apply (``camera_effects``): a camera's ISO range, in effect.
+AUTO_EXPOSURE = (1 / 8, 32.0)
 
 _VARIANTS = {"llvm": "llvm_ad_rgb", "cuda": "cuda_ad_rgb"}
 
@@ -64,6 +70,20 @@ def _texture(mi, material: dict) -> dict:
 
 
 def _bsdf(mi, material: dict) -> dict:
+    inner = _bsdf_unbumped(mi, material)
+    if not material.get("bump"):
+        return inner
+    # relief from the texture's own luminance (a bump map shades; the geometry, and so the
+    # depth, stay exact)
+    lum = make_texture(material["texture"]).astype(np.float32).mean(-1, keepdims=True) / 255.0
+    s = material.get("uv_scale", 1.0)
+    return {"type": "bumpmap", "scale": material["bump"], "bsdf": inner,
+            "arg": {"type": "bitmap", "bitmap": mi.Bitmap(lum), "raw": True,
+                    "filter_type": "bilinear", "wrap_mode": "repeat",
+                    "to_uv": mi.ScalarTransform4f().scale([s, s, 1])}}
+
+
+def _bsdf_unbumped(mi, material: dict) -> dict:
     if material["type"] == "plain":
         return {"type": "diffuse", "reflectance": {"type": "rgb", "value": material["rgb"]}}
     if material["type"] == "glossy":
@@ -201,6 +221,62 @@ def trace_depth(mi, scene, c2w: np.ndarray, intrinsics: np.ndarray,
     return depth, codes
 
 
+def camera_effects(linear: np.ndarray, effects: dict, frame: int) -> np.ndarray:
+    """A photograph of linear radiance [H, W, 3] as a camera would take it: uint8 sRGB after,
+    in this order, auto exposure (the frame scaled so that the geometric mean of its luminance
+    is ``key``, by a gain in ``AUTO_EXPOSURE``; NaN or infinite path-tracer samples as 0),
+    defocus (a Gaussian of ``defocus`` x width standard deviation), motion blur
+    (a line of up to ``motion`` x width pixels, its length and direction drawn per frame),
+    vignetting (1 - ``vignetting`` r^2, r = 1 at the corners), exposure (2^N(0,
+    ``exposure_sd_ev``)) and white balance (per channel e^N(0, ``white_balance_sd``), green
+    fixed) drawn per frame, sensor noise (Gaussian, standard deviation ``noise`` x sqrt(x +
+    0.01): shot noise with a read-noise floor), sRGB, then a JPEG round trip at
+    ``jpeg_quality``. Deterministic for (``effects["seed"]``, ``frame``).
+
+    Examples:
+        >>> fx = {"seed": 0, "key": 0.18, "defocus": 0.01, "motion": 0.01, "vignetting": 0.3,
+        ...       "exposure_sd_ev": 0.15, "white_balance_sd": 0.04, "noise": 0.01,
+        ...       "jpeg_quality": 90}
+        >>> a = camera_effects(np.full((16, 16, 3), 0.2), fx, 3)
+        >>> a.dtype, a.shape, bool((a == camera_effects(np.full((16, 16, 3), 0.2), fx, 3)).all())
+        (dtype('uint8'), (16, 16, 3), True)
+    """
+    from scipy import ndimage  # on first use (start-up time); scikit-image needs SciPy
+
+    rng = np.random.default_rng([effects["seed"], frame])
+    h, w = linear.shape[:2]
+    x = np.nan_to_num(np.asarray(linear, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    luminance = np.clip(x, 0.0, None) @ np.array([0.2126, 0.7152, 0.0722])
+    key = float(np.exp(np.log(luminance + 1e-4).mean()))
+    x = x * float(np.clip(effects["key"] / key, *AUTO_EXPOSURE))
+    sigma = effects["defocus"] * w
+    if sigma > 0.05:
+        x = ndimage.gaussian_filter(x, (sigma, sigma, 0), mode="nearest")
+    length = effects["motion"] * w * rng.random()
+    angle = rng.uniform(0, np.pi)
+    if length >= 0.5:  # a line kernel, antialiased by sampling it finely
+        size = 2 * int(np.ceil(length / 2)) + 1
+        kernel = np.zeros((size, size))
+        for t in np.linspace(-length / 2, length / 2, 8 * size):
+            kernel[round(size // 2 + t * np.sin(angle)),
+                   round(size // 2 + t * np.cos(angle))] += 1.0
+        kernel /= kernel.sum()
+        x = np.stack([ndimage.convolve(x[..., c], kernel, mode="nearest") for c in range(3)],
+                     -1)
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = ((xx + 0.5 - w / 2) ** 2 + (yy + 0.5 - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+    x = x * (1.0 - effects["vignetting"] * r2)[..., None]
+    gain = 2.0 ** rng.normal(0.0, effects["exposure_sd_ev"])
+    balance = np.exp(rng.normal(0.0, effects["white_balance_sd"], 3))
+    balance[1] = 1.0
+    x = np.clip(x * gain * balance, 0.0, None)
+    x = x + rng.normal(0.0, 1.0, x.shape) * effects["noise"] * np.sqrt(x + 0.01)
+    srgb = (linear_to_srgb(x) * 255 + 0.5).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(srgb).save(buffer, format="JPEG", quality=int(effects["jpeg_quality"]))
+    return rgb8(open_image(buffer.getvalue(), "a JPEG round trip"))
+
+
 def render_spec(spec: dict, resolution: tuple[int, int], spp: int = 64, seed: int = 0,
                 backend: str = "llvm", frames: list[int] | None = None):
     """Render a scene description: uint8 sRGB images [V, H, W, 3], float32 depths [V, H, W]
@@ -216,7 +292,10 @@ def render_spec(spec: dict, resolution: tuple[int, int], spp: int = 64, seed: in
     for i in frames:
         pass_seed = (seed * 100_003 + i) % 2**31  # Mitsuba seeds are 32-bit
         img = np.array(mi.render(scene, sensor=sensors[i], seed=pass_seed, spp=spp))
-        images.append((linear_to_srgb(img[..., :3]) * 255 + 0.5).astype(np.uint8))
+        if "camera_effects" in spec:  # the photographic appearance
+            images.append(camera_effects(img[..., :3], spec["camera_effects"], i))
+        else:
+            images.append((linear_to_srgb(img[..., :3]) * 255 + 0.5).astype(np.uint8))
         depth, mat = trace_depth(mi, scene, np.asarray(spec["cameras"]["c2w"][i]), intr,
                                  resolution, codes)
         depths.append(depth.astype(np.float32))

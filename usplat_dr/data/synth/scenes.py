@@ -30,6 +30,17 @@ same surfaces, sky and lamps (the same random stream) but rough shiny materials 
 surface a few large lights) that move smoothly with the viewpoint, which colour of spherical
 harmonics degree 2 can hold and two context views both see; tags gain ``view_dependent`` and
 ``rough``.
+
+``"photographic"``: the same rooms, terrains and turntables made to look like photographs
+(``photographic``): most surfaces carry photographic textures (``textures.PHOTOS``) with bump
+relief from their own luminance, some rough-glossy; clutter of many small textured objects
+on the ground; the structured sky with a sun as an environment light, larger lamps (soft
+shadows) and a path tracer (``max_depth`` 4: interreflection); focal lengths of 24-70 mm
+equivalent and hand-held jitter on every camera; and camera effects applied to the linear
+render (``camera_effects``: defocus and motion blur, vignetting, exposure and white balance
+changing between frames, sensor noise, JPEG). Depth stays exact: bump maps shade and blur
+blurs the image only; the clutter is geometry, traced like the rest. Tags gain
+``photographic``.
 """
 
 import math
@@ -37,11 +48,11 @@ import math
 import numpy as np
 import torch
 
-from usplat_dr.data.synth.textures import random_texture_spec
+from usplat_dr.data.synth.textures import photo_texture_spec, random_texture_spec
 from usplat_dr.geometry.cameras import look_at
 
 KINDS = ("indoor", "outdoor", "object")
-APPEARANCES = ("diffuse", "view-dependent", "rough-glossy")
+APPEARANCES = ("diffuse", "view-dependent", "rough-glossy", "photographic")
 SPEC_VERSION = 1
 #: Shapes that are always shiny in the view-dependent appearance (the ground of each kind).
 GROUND = ("floor", "terrain", "turntable")
@@ -437,6 +448,152 @@ def view_dependent(spec: dict, rng: np.random.Generator, appearance: str = "view
             "tags": [*spec["tags"], "view_dependent", *(["rough"] if rough else [])]}
 
 
+#: The photographic appearance: the chance that a surface is photo-textured diffuse,
+#: photo-textured rough-glossy, or keeps its procedural material (the rest: plain); the bump
+#: scale range; the glossy roughness; the path tracer's depth; focal lengths (mm, 36 mm film).
+PHOTO_DIFFUSE, PHOTO_GLOSSY, PHOTO_KEEP = 0.7, 0.12, 0.1
+PHOTO_BUMP, PHOTO_ROUGHNESS, PHOTO_MAX_DEPTH, PHOTO_FOCAL_MM = (0.3, 2.0), (0.2, 0.45), 4, (24, 70)
+#: The texture repeat of a surface that had none (a plain wall, a box).
+PHOTO_UV = 2.0
+#: Clutter per kind: (count range, size range in metres, clearance from the camera path).
+CLUTTER = {"indoor": ((10, 26), (0.04, 0.22), 0.45), "outdoor": ((15, 35), (0.08, 0.5), 1.2),
+           "object": ((5, 13), (0.03, 0.12), 0.0)}
+#: The auto exposure's target: the geometric mean of a frame's linear luminance (middle grey).
+PHOTO_KEY = 0.18
+#: The ``version`` of a photographic description (3: its first).
+PHOTO_VERSION = 3
+
+
+def _photo_material(rng: np.random.Generator, material: dict) -> dict:
+    """A photographic version of ``material`` (``PHOTO_*``)."""
+    u = rng.random()
+    tex = photo_texture_spec(rng)
+    # the repeat of the surface's own texture (a terrain's is large), jittered: a photograph
+    # keeps its detail on large surfaces
+    uv = round(float(material.get("uv_scale", PHOTO_UV) * rng.uniform(0.6, 1.6)), 2)
+    bump = round(float(rng.uniform(*PHOTO_BUMP)), 3) if rng.random() < 0.6 else 0.0
+    if u < PHOTO_DIFFUSE:
+        return {"type": "textured", "texture": tex, "uv_scale": uv, "bump": bump}
+    if u < PHOTO_DIFFUSE + PHOTO_GLOSSY:  # no bump: a bumped rough plastic gave NaN pixels
+        return {"type": "glossy", "texture": tex, "uv_scale": uv, "albedo": 0.8,
+                "roughness": round(float(rng.uniform(*PHOTO_ROUGHNESS)), 3), "ior": 1.5}
+    if u < PHOTO_DIFFUSE + PHOTO_GLOSSY + PHOTO_KEEP or material["type"] == "conductor":
+        return material
+    return {"type": "plain", "rgb": (0.15 + 0.7 * rng.random(3)).round(3).tolist()}
+
+
+def _ground_height(spec: dict):
+    """The ground's height at (x, z) for a description: the terrain's, else 0."""
+    terrain = next((s["terrain"] for s in spec["shapes"] if s["type"] == "terrain"), None)
+    if terrain is None:
+        return lambda x, z: 0.0
+    return lambda x, z: float(terrain_height(terrain, x, z))
+
+
+def _clutter_region(spec: dict) -> tuple[np.ndarray, float]:
+    """(centre (x, z), radius) of the ground where clutter goes: the turntable, the room's
+    floor, or ahead of the walkthrough outdoors."""
+    cams = np.asarray(spec["cameras"]["c2w"])
+    if spec["kind"] == "object":
+        return np.zeros(2), 0.9
+    if spec["kind"] == "indoor":
+        floor = np.asarray(next(s for s in spec["shapes"] if s["name"] == "floor")["to_world"])
+        half = min(np.linalg.norm(floor[:3, 0]), np.linalg.norm(floor[:3, 1]))
+        return floor[[0, 2], 3], 0.9 * half
+    ahead = cams[:, :3, 2].mean(0)
+    centre = cams[:, :3, 3].mean(0) + 6.0 * ahead / max(np.linalg.norm(ahead[[0, 2]]), 1e-6)
+    return centre[[0, 2]], 6.0
+
+
+def clutter(spec: dict, rng: np.random.Generator) -> list[dict]:
+    """Many small photo-textured objects (rocks, boxes, sticks) on the ground of ``spec``,
+    off the camera path (``CLUTTER``)."""
+    (lo, hi), (s_lo, s_hi), clearance = CLUTTER[spec["kind"]]
+    centre, radius = _clutter_region(spec)
+    path = np.asarray(spec["cameras"]["c2w"])[:, :3, 3][:, [0, 2]]
+    ground = _ground_height(spec)
+    out = []
+    for _ in range(int(rng.integers(lo, hi)) * 4):
+        if len(out) == hi:
+            break
+        r, a = radius * math.sqrt(rng.random()), rng.uniform(0, 2 * math.pi)
+        xz = centre + r * np.array([math.cos(a), math.sin(a)])
+        if clearance and (np.linalg.norm(path - xz, axis=1) < clearance).any():
+            continue
+        size, g = float(rng.uniform(s_lo, s_hi)), ground(*xz)
+        material = _photo_material(rng, {"type": "plain", "rgb": [0.5, 0.5, 0.5]})
+        name, shape = f"clutter{len(out)}", int(rng.integers(3))
+        if shape == 0:  # a rock: a sphere, partly sunk (Mitsuba's sphere scales uniformly)
+            out.append(_sphere(name, [xz[0], g + 0.3 * size, xz[1]], 0.6 * size, material))
+        elif shape == 1:
+            half = size * rng.uniform([0.4, 0.3, 0.4], [1.0, 1.0, 1.0])
+            out.append(_box(name, [xz[0], g + half[1], xz[1]], half, material,
+                            yaw=rng.uniform(0, 90)))
+        else:  # a stick lying on the ground
+            m = (translate([xz[0], g + 0.1 * size, xz[1]])
+                 @ rotate([0, 1, 0], rng.uniform(0, 360))  # the cylinder's axis (z) is level
+                 @ scale([0.1 * size, 0.1 * size, 2 * size]))
+            out.append(_shape(name, "cylinder", m, material))
+    return out
+
+
+def hand_held(c2w: list, rng: np.random.Generator, rotation_deg: float, translation: float
+              ) -> list:
+    """Each camera turned by a small random rotation (``rotation_deg`` standard deviation
+    about a random axis) and moved by ``translation`` (standard deviation per axis)."""
+    out = []
+    for c in c2w:
+        c = np.asarray(c, dtype=np.float64)
+        turn = rotate(rng.normal(size=3), rng.normal(0.0, rotation_deg))[:3, :3]
+        m = c.copy()
+        m[:3, :3] = c[:3, :3] @ turn
+        m[:3, 3] = c[:3, 3] + rng.normal(0.0, translation, 3)
+        out.append(np.round(m, 7).tolist())
+    return out
+
+
+def camera_effects_spec(rng: np.random.Generator) -> dict:
+    """A scene's camera effects (``render.camera_effects``): blur sizes are fractions of the
+    image width, so a set renders alike at any resolution."""
+    return {"seed": int(rng.integers(2**31)), "key": PHOTO_KEY,
+            # mostly sharp (a photo downsampled to 64-128 pixels is), now and then soft
+            "defocus": round(float(rng.uniform(0.0, 0.006) * (rng.random() < 0.5)), 5),
+            "motion": round(float(rng.uniform(0.0, 0.008) * (rng.random() < 0.5)), 5),
+            "vignetting": round(float(rng.uniform(0.0, 0.45)), 3),
+            "exposure_sd_ev": 0.15, "white_balance_sd": 0.04,
+            "noise": round(float(rng.uniform(0.003, 0.02)), 4),
+            "jpeg_quality": int(rng.integers(70, 96))}
+
+
+def photographic(spec: dict, rng: np.random.Generator) -> dict:
+    """The photographic appearance of a description (module docstring): its shapes
+    re-dressed, clutter added, lights, integrator and cameras made photographic."""
+    shapes = [{**s, "material": _photo_material(rng, s["material"])} for s in spec["shapes"]]
+    shapes += clutter(spec, rng)
+    lights = []
+    for light in spec["lights"]:
+        if light["type"] == "constant":
+            lights.append(environment_spec(rng, 1.3 * float(np.mean(light["radiance"]))))
+        elif light["type"] == "area":  # larger lamps, the same power: soft shadows
+            to_world = np.asarray(light["to_world"]) @ scale([LAMP_SCALE, LAMP_SCALE, 1.0])
+            lights.append({**light, "to_world": np.round(to_world, 6).tolist(),
+                           "radiance": round(light["radiance"] / LAMP_SCALE**2, 3)})
+        else:
+            lights.append(light)
+    focal = math.exp(rng.uniform(*np.log(PHOTO_FOCAL_MM)))
+    cams = np.asarray(spec["cameras"]["c2w"])
+    extent = float(np.linalg.norm(cams[:, :3, 3] - cams[:, :3, 3].mean(0), axis=1).max())
+    c2w = hand_held(spec["cameras"]["c2w"], rng, rng.uniform(0.3, 1.5),
+                    0.02 * max(extent, 0.1))
+    return {**spec, "version": PHOTO_VERSION, "shapes": shapes, "lights": lights,
+            "appearance": "photographic",
+            "integrator": {"type": "path", "max_depth": PHOTO_MAX_DEPTH},
+            "cameras": {"c2w": c2w, "fov_x_deg": round(math.degrees(2 * math.atan(18 / focal)),
+                                                      4)},
+            "camera_effects": camera_effects_spec(rng),
+            "tags": [*spec["tags"], "photographic"]}
+
+
 def make_spec(kind: str, seed: int, frames: int, appearance: str = "diffuse") -> dict:
     """The description of one procedural scene (deterministic for ``(kind, seed, frames,
     appearance)``; both appearances of a seed share shapes and cameras).
@@ -462,6 +619,8 @@ def make_spec(kind: str, seed: int, frames: int, appearance: str = "diffuse") ->
             "cameras": {"c2w": [np.round(c, 7).tolist() for c in s["cameras"]],
                         "fov_x_deg": round(s["fov_x_deg"], 4)},
             "near_far": s["near_far"], "tags": s["tags"]}
+    if appearance == "photographic":  # its own stream too (the geometry's is untouched)
+        return photographic(spec, np.random.default_rng([seed, KINDS.index(kind), 2]))
     if appearance != "diffuse":  # its own random stream: the geometry stays the same (and
         # both shiny appearances make the same surfaces shiny, under the same sky)
         spec = view_dependent(spec, np.random.default_rng([seed, KINDS.index(kind), 1]),

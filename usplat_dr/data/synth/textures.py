@@ -1,9 +1,72 @@
-"""Procedural textures in numpy (deterministic for a seed), stored in scene descriptions as
-small JSON-able specs ``{"pattern": ..., "seed": ..., "colors": ...}`` and rebuilt on demand."""
+"""Textures in numpy (deterministic for a seed), stored in scene descriptions as small
+JSON-able specs and rebuilt on demand: procedural ones ``{"pattern": ..., "seed": ...,
+"colors": ...}`` and photographic ones ``{"pattern": "photo", "image": ..., ...}`` (a random
+crop of one of scikit-image's photographs, rotated, scaled and jittered in colour and
+contrast: ``photo_texture_spec``)."""
+
+import functools
 
 import numpy as np
+from PIL import Image
 
 PATTERNS = ("checker", "stripes", "noise", "bricks", "dots")
+#: The photographs of ``skimage.data`` (shipped with scikit-image, nothing downloaded) that
+#: photographic textures crop: natural surfaces (brick, grass, gravel, moon), scenes and
+#: objects (astronaut, camera, coffee, cat, rocket, coins, clock), micrographs (cell,
+#: immunohistochemistry), print (text, page). Not the retina and the Hubble field (mostly
+#: black surround), nor the Middlebury motorcycle: that stereo pair scores the models' depth
+#: on a real photograph.
+PHOTOS = ("astronaut", "brick", "camera", "cat", "coffee", "coins", "grass", "gravel",
+          "rocket", "moon", "text", "page", "cell", "immunohistochemistry", "clock")
+
+
+@functools.lru_cache(maxsize=len(PHOTOS))
+def photo(name: str) -> np.ndarray:
+    """float64 [H, W, 3] in [0, 1] of ``skimage.data.<name>()`` (grey ones repeated)."""
+    if name not in PHOTOS:
+        raise ValueError(f"photo must be one of {PHOTOS}, got {name!r}")
+    import skimage.data  # on first use (start-up time)
+
+    a = np.asarray(getattr(skimage.data, name)(), dtype=np.float64) / 255.0
+    return np.repeat(a[..., None], 3, -1) if a.ndim == 2 else a[..., :3]
+
+
+def photo_texture_spec(rng: np.random.Generator, res: int = 256) -> dict:
+    """A random photographic texture: a photograph, the crop's side (a fraction of its
+    shorter side) and centre, a rotation, a tint (for grey photos), gain, contrast and
+    saturation."""
+    return {"pattern": "photo", "image": PHOTOS[int(rng.integers(len(PHOTOS)))],
+            "res": res, "crop": round(float(rng.uniform(0.15, 0.9)), 3),
+            "centre": rng.uniform(0.0, 1.0, 2).round(3).tolist(),
+            "rotation": round(float(rng.uniform(0, 360)), 1),
+            "tint": (0.55 + 0.45 * rng.random(3)).round(3).tolist(),
+            "gain": round(float(rng.uniform(0.55, 1.15)), 3),
+            "contrast": round(float(rng.uniform(0.6, 1.3)), 3),
+            "saturation": round(float(rng.uniform(0.4, 1.3)), 3)}
+
+
+def _photo_texture(spec: dict) -> np.ndarray:
+    """The float64 [res, res, 3] image of a ``photo_texture_spec``."""
+    src = photo(spec["image"])
+    h, w = src.shape[:2]
+    side = max(8, round(spec["crop"] * min(h, w)))
+    # a window 1.5x the crop, rotated, then the crop's centre: no corners outside the photo
+    big = min(round(side * 1.5), h, w)
+    cy = round(spec["centre"][1] * (h - big))
+    cx = round(spec["centre"][0] * (w - big))
+    window = Image.fromarray((src[cy:cy + big, cx:cx + big] * 255).round().astype(np.uint8))
+    window = window.rotate(spec["rotation"], resample=Image.Resampling.BILINEAR)
+    off = (big - min(side, round(big / 1.5))) // 2
+    cut = big - 2 * off
+    window = window.crop((off, off, off + cut, off + cut)).resize(
+        (spec["res"], spec["res"]), Image.Resampling.LANCZOS)
+    img = np.asarray(window, dtype=np.float64) / 255.0
+    grey = img.mean(-1, keepdims=True)
+    if np.allclose(src[..., 0], src[..., 1]):  # a grey photo: tinted
+        img = grey * np.asarray(spec["tint"])
+    img = grey + spec["saturation"] * (img - grey)
+    img = img.mean() + spec["contrast"] * (img - img.mean())
+    return img * spec["gain"]
 
 
 def _value_noise(rng: np.random.Generator, res: int, cells: int) -> np.ndarray:
@@ -38,6 +101,8 @@ def make_texture(spec: dict) -> np.ndarray:
         >>> img.shape, img.dtype, bool((make_texture(spec) == img).all())
         ((16, 16, 3), dtype('uint8'), True)
     """
+    if spec["pattern"] == "photo":
+        return (np.clip(_photo_texture(spec), 0, 1) * 255 + 0.5).astype(np.uint8)
     rng = np.random.default_rng(spec["seed"])
     res, cells = spec["res"], spec["cells"]
     c = np.asarray(spec["colors"], dtype=np.float64)
