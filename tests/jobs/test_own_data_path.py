@@ -29,6 +29,20 @@ def test_import_train_and_test_stages_then_train_and_evaluate(user_scene, tmp_pa
                  "--data", str(data), "--out", str(tmp_path / "eval")]) == 0
     summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
     assert summary["splits"]["standard"]["scenes"] == 1
+    # --near/--far override the scene's recorded range (the imported sparse points' 2.55/5.81):
+    # a range ten times farther puts every depth candidate behind the scene, another render
+    ckpt = str(run / "checkpoints" / "last.ckpt")
+    assert main(["-q", "eval", "--checkpoint", ckpt, "--data", str(data), "--near", "25",
+                 "--far", "60", "--out", str(tmp_path / "eval_far")]) == 0
+    far = json.loads((tmp_path / "eval_far" / "summary.json").read_text())
+    assert far["splits"]["standard"]["psnr"] != summary["splits"]["standard"]["psnr"]
+    assert main(["-q", "export-ply", "--checkpoint", ckpt, "--data", str(data), "--near", "25",
+                 "--far", "60", "--out", str(tmp_path / "far.ply")]) == 0
+    capsys.readouterr()
+    for command in ("eval", "export-ply"):
+        assert main(["-q", command, "--checkpoint", ckpt, "--data", str(data), "--near",
+                     "1"]) == 2
+        assert "give both --near and --far" in capsys.readouterr().err
 
     # an index naming scenes the data do not hold: exit 2, one line, not a silent 0 of 1
     (data / "evaluation_index_standard.json").write_text(json.dumps(

@@ -26,6 +26,10 @@ def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene,
     printed = capsys.readouterr().out
     assert "gaussians_frame0000.ply" in printed and "4 frames" in printed
     assert "near/far " in printed and "(from the sparse points; --near/--far to set it)" in printed
+    # the square crop of 48x64 photos drops a quarter: said, with the shape that keeps them
+    # (covering 128x128 resizes to 128x171: 128/171 = 75% kept; 128 x 48/64 = 96 rows)
+    assert ("the 128x128 crop keeps 75% of each 48x64 photo (drops 13% at the left and at the "
+            "right): --image-shape 96 128 keeps its aspect") in printed
     frames = sorted((out / "frames").glob("*.png"))
     assert len(frames) == 4
     assert len(list(out.glob("video.*"))) == 1

@@ -73,6 +73,9 @@ def test_chunks_and_input_forms_do_not_change_the_views(model):
     ({"images": "shape"}, "images must be V images"),
     ({"near": -1.0}, "near must be a positive number"),
     ({"far": 0.5}, "far must exceed near"),
+    # UserViews.near of a transforms.json (no sparse points) passed on as it is
+    ({"near": None}, r"near= is None: pass the depth range in scene units \(near=, far=\)"),
+    ({"far": None}, r"far= is None"),
     ({"chunk": 0}, "chunk must be an int >= 1"),
 ])
 def test_wrong_inputs_name_the_argument(model, change, needle):

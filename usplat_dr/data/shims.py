@@ -58,9 +58,12 @@ def rescale_and_crop(
     images: Tensor,  # uint8 [V, 3, H, W] (Lanczos) or float [V, H, W] depth (nearest)
     intrinsics: Float[Tensor, "view 3 3"],
     shape: tuple[int, int],
+    move_principal_point: bool = False,
 ) -> tuple[Tensor, Float[Tensor, "view 3 3"]]:
     """Resize so the image covers ``shape``, then centre-crop to it; fx, fy scale by the crop
-    (cx, cy stay as stored, as in the field). Images are resized as uint8 with PIL Lanczos.
+    (cx, cy stay as stored, as in the field's datasets, whose principal points are centred;
+    ``move_principal_point``: moved by the crop, right for any principal point, as users'
+    own images need: ``cropped_intrinsics``). Images are resized as uint8 with PIL Lanczos.
 
     Examples:
         >>> imgs = torch.zeros(1, 3, 360, 640, dtype=torch.uint8)
@@ -71,7 +74,7 @@ def rescale_and_crop(
     """
     h_in, w_in = images.shape[-2:]
     h_out, w_out = shape
-    h_scaled, w_scaled = _covering(images.shape[-2:], shape)
+    h_scaled, w_scaled = covering_size(images.shape[-2:], shape)
     # the cap decoding applies: a 1 x 4,000,000 frame passes it, but covering a 32x32 crop
     # would make it 32 x 128,000,000 (the scene is skipped)
     if h_scaled * w_scaled > MAX_IMAGE_PIXELS:
@@ -81,10 +84,10 @@ def rescale_and_crop(
         images = torch.stack([_resize(im, (h_scaled, w_scaled)) for im in images])
     row, col = (h_scaled - h_out) // 2, (w_scaled - w_out) // 2
     images = images[..., row:row + h_out, col:col + w_out]
-    return images, cropped_intrinsics(intrinsics, (h_in, w_in), shape)
+    return images, cropped_intrinsics(intrinsics, (h_in, w_in), shape, move_principal_point)
 
 
-def _covering(shape_in, shape: tuple[int, int]) -> tuple[int, int]:
+def covering_size(shape_in, shape: tuple[int, int]) -> tuple[int, int]:
     """The size an image of ``shape_in`` is resized to so that it covers ``shape``."""
     (h_in, w_in), (h_out, w_out) = shape_in, shape
     scale = max(h_out / h_in, w_out / w_in)
@@ -92,19 +95,30 @@ def _covering(shape_in, shape: tuple[int, int]) -> tuple[int, int]:
 
 
 def cropped_intrinsics(intrinsics: Float[Tensor, "view 3 3"], shape_in: tuple[int, int],
-                       shape: tuple[int, int]) -> Float[Tensor, "view 3 3"]:
+                       shape: tuple[int, int], move_principal_point: bool = False
+                       ) -> Float[Tensor, "view 3 3"]:
     """The normalised intrinsics of an image of ``shape_in`` after ``rescale_and_crop`` to
-    ``shape``, without the image (a target camera).
+    ``shape``, without the image (a target camera). With ``move_principal_point`` the
+    principal point follows the crop: cx' = (cx W_s - col) / W (W_s the resized width, col
+    the crop's first column), likewise cy; without, it stays as stored (the field's shim,
+    exact only for a centred one).
 
     Examples:
         >>> k = torch.tensor([[[0.9, 0, 0.5], [0, 1.6, 0.5], [0, 0, 1]]])
         >>> round(cropped_intrinsics(k, (360, 640), (256, 256))[0, 0, 0].item(), 4)
         1.5996
+        >>> k[0, 0, 2] = 0.42  # off-centre: 0.42 x 455 - 99 = 92.1 of 256 pixels
+        >>> round(cropped_intrinsics(k, (360, 640), (256, 256), True)[0, 0, 2].item(), 4)
+        0.3598
     """
-    h_scaled, w_scaled = _covering(shape_in, shape)
+    h_scaled, w_scaled = covering_size(shape_in, shape)
     intrinsics = intrinsics.clone()
     intrinsics[:, 0, 0] *= w_scaled / shape[1]
     intrinsics[:, 1, 1] *= h_scaled / shape[0]
+    if move_principal_point:
+        row, col = (h_scaled - shape[0]) // 2, (w_scaled - shape[1]) // 2
+        intrinsics[:, 0, 2] = (intrinsics[:, 0, 2] * w_scaled - col) / shape[1]
+        intrinsics[:, 1, 2] = (intrinsics[:, 1, 2] * h_scaled - row) / shape[0]
     return intrinsics
 
 

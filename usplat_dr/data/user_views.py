@@ -5,7 +5,8 @@ The camera file is what users have: a COLMAP sparse model (its folder) or a nerf
 ``transforms.json`` (the file, or the folder holding it), read by ``usplat_dr.data.importers``
 with its conventions. Images are matched to cameras by file name, then resized to cover the
 model's image shape and centre-cropped, the intrinsics following (``rescale_and_crop``, as the
-datasets do).
+datasets do, and the principal point moved by the crop: a user's camera may have an
+off-centre one, where the field's shim, which keeps it, would shift every ray).
 """
 
 import os
@@ -22,7 +23,7 @@ from usplat_dr.data.importers import (
     read_colmap,
     read_nerfstudio,
 )
-from usplat_dr.data.shims import cropped_intrinsics, rescale_and_crop
+from usplat_dr.data.shims import covering_size, cropped_intrinsics, rescale_and_crop
 
 
 @dataclass
@@ -88,7 +89,7 @@ def context_views(images: list[str | os.PathLike], scene: ImportedScene,
     intrinsics = torch.from_numpy(scene.intrinsics[idx]).float()
     cropped, ks = [], []
     for im, k in zip(loaded, intrinsics):  # one at a time: the images may differ in size
-        c, k2 = rescale_and_crop(im[None], k[None], image_shape)
+        c, k2 = rescale_and_crop(im[None], k[None], image_shape, move_principal_point=True)
         cropped.append(c[0])
         ks.append(k2[0])
     near = far = None
@@ -104,6 +105,39 @@ def target_cameras(scene: ImportedScene, image_shape: tuple[int, int]
     """Every camera of ``scene`` as a target rendered at ``image_shape``: extrinsics
     [N, 4, 4] and intrinsics [N, 3, 3] (cropped as the images would be)."""
     ks = [cropped_intrinsics(torch.from_numpy(k).float()[None], tuple(int(n) for n in s),
-                             image_shape)[0]
+                             image_shape, move_principal_point=True)[0]
           for k, s in zip(scene.intrinsics, scene.image_shapes)]
     return torch.from_numpy(np.asarray(scene.extrinsics)).float(), torch.stack(ks)
+
+
+#: The crop dropping less than this share of a photo goes unmentioned (``crop_advice``).
+CROP_QUIET = 0.1
+
+
+def crop_advice(shape_in: tuple[int, int], shape: tuple[int, int], multiple: int = 16
+                ) -> str | None:
+    """What the crop of a ``shape_in`` (H, W) photo to ``shape`` drops, and an image shape
+    with the photo's aspect (the long side kept, the short one a multiple of ``multiple``);
+    None when it drops under ``CROP_QUIET`` of the photo.
+
+    Examples:
+        >>> print(crop_advice((1008, 756), (64, 64)))  # doctest: +NORMALIZE_WHITESPACE
+        the 64x64 crop keeps 75% of each 1008x756 photo (drops 12% at the top and at the
+        bottom): --image-shape 64 48 keeps its aspect
+        >>> crop_advice((480, 640), (48, 64)) is None
+        True
+    """
+    h_s, w_s = covering_size(shape_in, shape)
+    kept = shape[0] * shape[1] / (h_s * w_s)
+    if kept > 1 - CROP_QUIET:
+        return None
+    (h, w), long_side = shape_in, max(shape)
+    if h >= w:
+        suggest = (long_side, max(multiple, round(long_side * w / h / multiple) * multiple))
+        where = "at the top and at the bottom"
+    else:
+        suggest = (max(multiple, round(long_side * h / w / multiple) * multiple), long_side)
+        where = "at the left and at the right"
+    return (f"the {shape[0]}x{shape[1]} crop keeps {kept:.0%} of each {h}x{w} photo (drops "
+            f"{(1 - kept) / 2:.0%} {where}): --image-shape {suggest[0]} {suggest[1]} keeps its "
+            "aspect")

@@ -19,7 +19,12 @@ from usplat_dr.jobs.arguments import (
     check_budget_arguments,
     out_folder,
 )
-from usplat_dr.jobs.render import add_image_shape_argument, add_trust_argument, image_shape
+from usplat_dr.jobs.render import (
+    add_image_shape_argument,
+    add_near_far_arguments,
+    add_trust_argument,
+    dataset_section,
+)
 from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import checkpoint_provenance, load
@@ -37,6 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="evaluation index JSON(s); default: the synthetic set's own splits")
     p.add_argument("--splits", nargs="+", help="synthetic splits to evaluate (default: all)")
     add_image_shape_argument(p, fits=False)
+    add_near_far_arguments(p, "each scene's recorded range")
     add_trust_argument(p)
     p.add_argument("--prune", action="store_true",
                    help="prune the Gaussians per target view before rendering (exact culling "
@@ -102,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     model.inference_precision = args.precision
     if args.precision == "bfloat16" and args.device == "cpu":
         warn_slow_bfloat16()
-    dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
+    dataset = dataset_section(args)
     # Scenes the checkpoint trained on are warned about (checkpoints that record no
     # train_keys, from before they were recorded, cannot be checked).
     record = checkpoint_provenance(args.checkpoint, args.trust_checkpoint)

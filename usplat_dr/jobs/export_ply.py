@@ -7,7 +7,13 @@ import torch
 
 from usplat_dr.data.types import model_inputs
 from usplat_dr.jobs.arguments import check_budget_arguments, non_negative_int, out_file
-from usplat_dr.jobs.render import add_example_arguments, fit_checkpoint, one_example
+from usplat_dr.jobs.render import (
+    add_example_arguments,
+    add_near_far_arguments,
+    check_near_far,
+    fit_checkpoint,
+    one_example,
+)
 from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.model.ply import write_ply
 
@@ -15,6 +21,7 @@ from usplat_dr.model.ply import write_ply
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_example_arguments(p)
     p.add_argument("--target", type=non_negative_int, default=0, help="target view index")
+    add_near_far_arguments(p, "the scene's recorded range")
     p.add_argument("--min-opacity", type=float, default=0.0,
                    help="leave out Gaussians below this opacity")
     p.add_argument("--out", type=out_file, default="outputs/export/gaussians.ply",
@@ -23,6 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     check_budget_arguments(args)
+    check_near_far(args)
     fit_checkpoint(args)
     model, batch = one_example(args)
     with torch.no_grad():

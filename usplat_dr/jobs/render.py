@@ -22,6 +22,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.data.user_views import (
     UserViews,
     context_views,
+    crop_advice,
     read_cameras,
     target_cameras,
 )
@@ -129,8 +130,18 @@ def one_example(args: argparse.Namespace) -> tuple:
     """The model and the example that ``add_example_arguments``' arguments name."""
     index = args.index or synthetic_indices(args.data, ["standard"])["standard"]
     model = load(args.checkpoint, args.device, args.trust_checkpoint)
+    return model, load_example(dataset_section(args), index, args.scene)
+
+
+def dataset_section(args: argparse.Namespace) -> dict:
+    """The dataset section of ``--data``, ``--dataset``, the image shape and, where given,
+    ``--near``/``--far`` (overriding each scene's recorded range)."""
     dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
-    return model, load_example(dataset, index, args.scene)
+    if hasattr(args, "near"):
+        check_near_far(args)
+        if args.near is not None:
+            dataset["overrides"] = {"near": args.near, "far": args.far}
+    return dataset
 
 
 def add_own_views_arguments(p: argparse.ArgumentParser) -> None:
@@ -207,8 +218,11 @@ def own_views(args: argparse.Namespace, trained_range: list[float] | None = None
         posed = True
     else:
         posed = False
-    views = context_views(args.images, read_cameras(args.cameras, args.ignore_distortion),
-                          image_shape(args))
+    scene = read_cameras(args.cameras, args.ignore_distortion)
+    views = context_views(args.images, scene, image_shape(args))
+    shapes = {tuple(int(n) for n in s) for s in scene.image_shapes}
+    for advice in sorted(filter(None, (crop_advice(s, image_shape(args)) for s in shapes))):
+        print(advice)
     if args.near is not None:
         near, far, where = args.near, args.far, "--near/--far"
     elif views.near is not None:

@@ -86,6 +86,11 @@ def _images(images) -> Tensor:
 
 def _bounds(name: str, value, views: int) -> Tensor:
     """near or far per view from a number or a list of ``views`` numbers."""
+    if value is None:  # UserViews.near/far of a camera file without sparse points
+        raise ValueError(f"{name}= is None: pass the depth range in scene units (near=, far=). "
+                         "A camera file without sparse points (a transforms.json) sets none; "
+                         "estimate one from two views with usplat_dr.geometry.plane_sweep."
+                         "near_far_from_sweep, or read it off usplat render's printed line")
     t = torch.as_tensor(value, dtype=torch.float32).reshape(-1)
     if t.numel() == 1:
         t = t.expand(views)
