@@ -8,7 +8,9 @@ each ``--sizes`` (square crops, as ``usplat render --images`` makes them):
 - pairs (i, i + g) for the gaps ``GAPS``, every ``STRIDE`` photos; targets *between* (the
   photos strictly inside the pair) and *beyond* (the photo before and the one after);
 - each model predicts every target from the pair (near/far from the capture's sparse points),
-  and copying predicts it as the context photo whose centre is nearest; PSNR of each against
+  copying predicts it as the context photo whose centre is nearest, and a classical plane
+  sweep renders it from the pair (``sweep_render``, exploratory: added after the
+  pre-registration); PSNR of each against
   the real photo, per target (``rows.csv``), and the means per capture, size, placement and
   model with the margin over copying (``summary.json``, printed);
 - a contact sheet per capture and size (``sheet_<capture>_<size>.png``): context photos, the
@@ -44,10 +46,12 @@ from usplat_dr.data.shims import covering_size, cropped_intrinsics, rescale_and_
 from usplat_dr.data.user_views import context_views, read_cameras
 from usplat_dr.evaluation.baselines import copy_nearest
 from usplat_dr.evaluation.metrics import psnr
-from usplat_dr.geometry.plane_sweep import plane_sweep
+from usplat_dr.geometry.plane_sweep import plane_sweep, sweep_render
 
 #: Context pairs: photo i with photo i + g for each gap, every STRIDE photos.
 GAPS, STRIDE = (2, 4), 3
+#: Depth hypotheses of the classical novel view (``sweep_views``).
+SWEEP_DEPTHS = 64
 #: The motorcycle's depth range given to the models and swept (metres; ground truth 2.1-5.0).
 MOTO_RANGE = (1.5, 10.0)
 #: skimage's calibration of the down-sampled pair (its docstring).
@@ -92,7 +96,8 @@ def capture_rows(capture: str, result, size: int, models: dict, sheet_pairs: int
                 continue
             gt = images[targets]
             copy = copy_nearest(images[ctx], e[ctx], e[targets])
-            preds = {"copy": copy}
+            preds = {"copy": copy, "plane sweep": sweep_views(images, k, e, ctx, targets,
+                                                                 views.near, views.far)}
             for name, model in models.items():
                 preds[name] = model.predict(images[ctx], intrinsics=k[ctx], extrinsics=e[ctx],
                                             target_intrinsics=k[targets],
@@ -110,6 +115,18 @@ def capture_rows(capture: str, result, size: int, models: dict, sheet_pairs: int
                 cells = [images[i], images[j], gt[0]] + [p[0] for p in preds.values()]
                 sheet.append(torch.cat(cells, dim=2))
     return rows, sheet, views.near, views.far
+
+
+def sweep_views(images, k, e, ctx, targets, near, far) -> torch.Tensor:
+    """Each target rendered classically from the pair (``sweep_render``, ``SWEEP_DEPTHS``
+    hypotheses uniform in inverse depth over near/far)."""
+    a = [images[i].permute(1, 2, 0).double().numpy() for i in ctx]
+    depths = 1.0 / np.linspace(1.0 / near, 1.0 / far, SWEEP_DEPTHS)
+    out = [sweep_render(a, [k[i].double().numpy() for i in ctx],
+                        [e[i].double().numpy() for i in ctx], k[t].double().numpy(),
+                        e[t].double().numpy(), tuple(images.shape[-2:]), depths)
+           for t in targets]
+    return torch.from_numpy(np.stack(out)).permute(0, 3, 1, 2).float()
 
 
 def save_sheet(rows_of_cells: list[torch.Tensor], labels: list[str], path: Path) -> None:
@@ -202,14 +219,16 @@ def main() -> None:
     p.add_argument("--pose-root", default="outputs/pose")
     p.add_argument("--captures", nargs="+", default=["monstree", "sacre_coeur"])
     p.add_argument("--models", nargs="+", required=True,
-                   help="SIZE:NAME[,NAME...] (a shipped name or a checkpoint file)")
+                   help="SIZE:NAME[,NAME...] (a shipped name, or LABEL=FILE for a checkpoint "
+                   "file)")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     by_size = {}
     for spec in args.models:
         size, names = spec.split(":")
-        by_size[int(size)] = {n: load_model(n) for n in names.split(",")}
+        by_size[int(size)] = {n.split("=")[0]: load_model(n.split("=")[-1])
+                              for n in names.split(",")}
     posed, rows, depth_rows, started = {}, [], [], time.time()
     for capture in args.captures:
         try:
@@ -221,7 +240,8 @@ def main() -> None:
         for capture, result in posed.items():
             got, sheet, near, far = capture_rows(capture, result, size, models)
             rows += got
-            save_sheet(sheet, ["context i", "context j", "target", "copy", *models],
+            save_sheet(sheet, ["context i", "context j", "target", "copy", "plane sweep",
+                               *models],
                        out / f"sheet_{capture}_{size}.png")
             print(f"{capture} {size}x{size}: {len(got)} rows, near/far {near:.3g}/{far:.3g}, "
                   f"{time.time() - started:.0f} s", flush=True)

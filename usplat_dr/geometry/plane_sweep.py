@@ -19,12 +19,16 @@ import numpy as np
 #: factors (as ``data.importers.near_far_from_points`` does for sparse points).
 SWEEP_PERCENTILES = (1.0, 99.0)
 SWEEP_MARGIN = (0.8, 1.2)
+#: The share of the hypotheses at which the source must see a pixel for it to count as
+#: confident (``SweepResult``).
+SEEN_SHARE = 0.5
 
 
 @dataclass
 class SweepResult:
     """``depth`` [H, W] (camera-space z of the reference view), ``cost`` [H, W] (the least
-    SAD), ``confident`` [H, W] bool (seen by the source at every hypothesis and with a
+    SAD), ``confident`` [H, W] bool (seen by the source at ``SEEN_SHARE`` of the hypotheses
+    or more, converging cameras lose the nearest ones off the frame, and with a
     distinct minimum: its least cost below ``ratio`` times its median cost) and the
     ``depths`` swept [D]."""
 
@@ -84,7 +88,7 @@ def plane_sweep(reference: np.ndarray, source: np.ndarray, intrinsics_ref: np.nd
     ref_to_src = np.linalg.inv(c2w_src) @ c2w_ref
     rot, trans = ref_to_src[:3, :3], ref_to_src[:3, 3]
     costs = np.empty((len(depths), h, w))
-    seen = np.ones((h, w), dtype=bool)
+    seen = np.zeros((h, w))
     for n, z in enumerate(depths):
         p = (rays * z) @ rot.T + trans  # [H, W, 3] in the source camera
         front = p[..., 2] > 1e-9
@@ -96,14 +100,14 @@ def plane_sweep(reference: np.ndarray, source: np.ndarray, intrinsics_ref: np.nd
         costs[n] = _box_sum(np.where(valid, diff, 0.0), window) / np.maximum(
             _box_sum(valid.astype(np.float64), window), 1.0)
         costs[n][~valid] = np.inf
-        seen &= valid
+        seen += valid
     best = costs.argmin(0)
     least = np.take_along_axis(costs, best[None], 0)[0]
     finite = np.where(np.isfinite(costs), costs, np.nan)
     with warnings.catch_warnings():  # pixels no hypothesis sees: NaN, not confident
         warnings.simplefilter("ignore", RuntimeWarning)
         median = np.nanmedian(finite, axis=0) if len(depths) > 1 else least
-    confident = seen & np.isfinite(least) & (least < ratio * median)
+    confident = (seen >= SEEN_SHARE * len(depths)) & np.isfinite(least) & (least < ratio * median)
     return SweepResult(depth=np.asarray(depths)[best], cost=least, confident=confident,
                        depths=np.asarray(depths))
 
@@ -155,3 +159,58 @@ def near_far_from_sweep(images: list[np.ndarray], intrinsics: list[np.ndarray],
                          "(textureless, or not overlapping): give --near and --far")
     lo, hi = np.percentile(depth, SWEEP_PERCENTILES)
     return round(float(lo * SWEEP_MARGIN[0]), 6), round(float(hi * SWEEP_MARGIN[1]), 6)
+
+
+def sweep_render(images: list[np.ndarray], intrinsics: list[np.ndarray],
+                 extrinsics: list[np.ndarray], target_intrinsics: np.ndarray,
+                 target_c2w: np.ndarray, shape: tuple[int, int], depths: np.ndarray,
+                 window: int = 5) -> np.ndarray:
+    """A novel view [H, W, C] of the target camera from two context views, classically: each
+    target pixel is lifted to every depth of ``depths``, projected into both views (bilinear
+    samples), and takes the depth where the two samples agree best (SAD over a ``window``
+    square) and their mean colour there; a pixel only one view sees takes that view's sample,
+    one neither sees 0. Conventions as ``plane_sweep``'s.
+
+    Examples:
+        >>> rng = np.random.default_rng(0)
+        >>> img = rng.random((24, 32, 3))
+        >>> k = np.array([[1.0, 0, 0.5], [0, 32 / 24, 0.5], [0, 0, 1]])
+        >>> right = np.eye(4); right[0, 3] = 0.25  # 2 px of disparity at z 4 (f 32 px)
+        >>> mid = np.eye(4); mid[0, 3] = 0.125
+        >>> a, b = np.roll(img, 1, axis=1), np.roll(img, -1, axis=1)  # the plane z = 4
+        >>> out = sweep_render([a, b], [k, k], [np.eye(4), right], k, mid, (24, 32),
+        ...                    np.array([2.0, 4.0, 8.0]))
+        >>> bool(np.abs(out[:, 3:-3] - img[:, 3:-3]).max() < 1e-9)
+        True
+    """
+    h, w = shape
+    k_t = target_intrinsics * np.array([[w], [h], [1.0]])
+    jj, ii = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([jj, ii, np.ones_like(jj)], -1) @ np.linalg.inv(k_t).T
+    world_rays = rays @ target_c2w[:3, :3].T
+    best_cost = np.full((h, w), np.inf)
+    colour = np.zeros((h, w, images[0].shape[-1]))
+    for z in depths:
+        points = world_rays * z + target_c2w[:3, 3]
+        samples, valid = [], []
+        for image, k, c2w in zip(images[:2], intrinsics[:2], extrinsics[:2]):
+            hs, ws = image.shape[:2]
+            p = (points - c2w[:3, 3]) @ c2w[:3, :3]  # world -> camera (R^T (x - t))
+            front = p[..., 2] > 1e-9
+            q = p / np.where(front, p[..., 2], 1.0)[..., None] @ (
+                k * np.array([[ws], [hs], [1.0]])).T
+            s, inside = _bilinear(image, q[..., 0], q[..., 1])
+            samples.append(s)
+            valid.append(front & inside)
+        both = valid[0] & valid[1]
+        diff = np.abs(samples[0] - samples[1]).sum(-1)
+        cost = _box_sum(np.where(both, diff, 0.0), window) / np.maximum(
+            _box_sum(both.astype(np.float64), window), 1.0)
+        cost = np.where(both, cost, np.inf)
+        better = cost < best_cost
+        best_cost = np.where(better, cost, best_cost)
+        colour = np.where(better[..., None], (samples[0] + samples[1]) / 2, colour)
+        for s, v, other in ((samples[0], valid[0], valid[1]), (samples[1], valid[1], valid[0])):
+            alone = ~np.isfinite(best_cost) & v & ~other  # seen by one view only, so far
+            colour = np.where(alone[..., None], s, colour)
+    return colour

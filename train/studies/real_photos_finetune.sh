@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# The fine-tuning of the real-photographs study (train/studies/README.md, "Real photographs"):
+# (c) from tiny_full and (a) from tiny_baseline at 64x64 on the photographic and diffuse
+# appearances of the first 200 seed-100 training scenes, one thread each, side by side.
+# Resumable: run it again after a kill (--resume continues each run from its last checkpoint).
+set -euo pipefail
+STEPS=${STEPS:-3000}
+PH=outputs/photo/train200_ph
+DIFFUSE=outputs/photo/train200
+[ -f "$PH/train/synth.json" ] || usplat synth --out "$PH" --stage train --scenes 200 --frames 24 \
+    --image-shape 64 64 --seed 100 --appearance photographic --jobs 1
+[ -f "$DIFFUSE/train/synth.json" ] || usplat synth --out "$DIFFUSE" --stage train --scenes 200 \
+    --frames 24 --image-shape 64 64 --seed 100 --jobs 1
+run() {  # variant, init, output folder
+    local resume=()
+    [ -f "$3/checkpoints/last.ckpt" ] && resume=(--resume)
+    USPLAT_THREADS=1 usplat train --config synthetic_tiny_depth.yaml \
+        "dataset.roots=[$PH,$DIFFUSE]" model.variant="$1" model.init_from="$2" threads=1 seed=0 \
+        train.steps="$STEPS" optimizer.lr=2e-4 train.checkpoint_every=100 \
+        train.validate_every=100000 train.progress=false output_dir="$3" "${resume[@]}"
+}
+run full tiny_full outputs/photo/ft_full > outputs/photo/ft_full.log 2>&1 &
+run baseline tiny_baseline outputs/photo/ft_baseline > outputs/photo/ft_baseline.log 2>&1 &
+wait
