@@ -31,7 +31,7 @@ def motorcycle():
 
 
 def _at(size, motorcycle, move):
-    left, right, depth, k_l, k_r, c2w_r = motorcycle
+    left, right, depth, k_l, k_r, _ = motorcycle
     h, w = left.shape[:2]
     imgs = torch.from_numpy(np.stack([left, right])).permute(0, 3, 1, 2)
     small, _ = rescale_and_crop(imgs, torch.from_numpy(k_l)[None].repeat(2, 1, 1).float(),
