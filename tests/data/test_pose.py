@@ -121,3 +121,22 @@ def test_a_real_capture_registers(tmp_path):
     assert result.camera_mode == "single"
     assert len(result.registered) == 5 and result.points > 500
     assert result.mean_reprojection_error < 1.0  # COLMAP's usual sub-pixel fit
+
+
+@pytest.mark.skipif(not MONSTREE.is_dir(), reason="../shared/realdata/monstree is not here")
+def test_render_poses_photos_given_without_cameras_and_reuses_the_poses(tmp_path, capsys):
+    # as a user with two photos: render poses them (COLMAP's second mapping attempt, two-view
+    # tracks kept, registers this pair), says so and prints COLMAP's scale; a second render
+    # of the same photos reuses the poses
+    photos = [str(MONSTREE / f"img_{n}.jpg") for n in (1029, 1037)]
+    args = ["-q", "render", "--checkpoint", "tiny_full", "--images", *photos, "--frames", "2",
+            "--image-shape", "64", "64", "--out", str(tmp_path / "r")]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "no --cameras: posing the 2 photos with COLMAP" in printed
+    assert "registered 2 of 2 photos" in printed and "COLMAP's scale is arbitrary" in printed
+    assert "plane sweep" in printed or "from the sparse points" in printed
+    assert len(list((tmp_path / "r" / "frames").glob("*.png"))) == 2
+    assert (tmp_path / "r" / "pose" / "sparse").is_dir()
+    assert main(args) == 0
+    assert "no --cameras: using the poses of these photos in" in capsys.readouterr().out

@@ -241,7 +241,8 @@ def own_views(args: argparse.Namespace, trained_range: list[float] | None = None
                   "units apart")
     # the range matters (2-3 dB against the one a scene was trained with, docs/data.md): say it
     print(f"near/far {near:.4g} / {far:.4g} ({where})")
-    warning = depth_range_warning(near, far, trained_range)
+    # COLMAP's units are arbitrary: a range far from the trained one says nothing there
+    warning = None if posed else depth_range_warning(near, far, trained_range)
     if warning:
         log.warning(warning)
     return views, near, far
