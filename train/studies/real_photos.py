@@ -58,10 +58,10 @@ MOTO_RANGE = (1.5, 10.0)
 MOTO_F, MOTO_CX, MOTO_CY, MOTO_DOFFS, MOTO_BASELINE = 994.978, 311.193, 254.877, 31.086, 0.193001
 
 
-def pairs(n: int) -> list[tuple[int, int, list[int], list[int]]]:
+def pairs(n: int, gaps: tuple[int, ...] = GAPS) -> list[tuple[int, int, list[int], list[int]]]:
     """(i, j, between, beyond) for ``n`` photos in capture order."""
     out = []
-    for g in GAPS:
+    for g in gaps:
         for i in range(0, n - g, STRIDE):
             j = i + g
             beyond = [k for k in (i - 1, j + 1) if 0 <= k < n]
@@ -82,14 +82,15 @@ def load_model(name: str):
     return usplat_dr.load(name)
 
 
-def capture_rows(capture: str, result, size: int, models: dict, sheet_pairs: int = 3):
+def capture_rows(capture: str, result, size: int, models: dict, sheet_pairs: int = 3,
+                 gaps: tuple[int, ...] = GAPS):
     scene = read_cameras(str(result.model))
     paths = [str(p) for p in scene.image_paths]
     views = context_views(paths, scene, (size, size))
     images = views.images.float() / 255.0
     e, k = views.extrinsics, views.intrinsics
     rows, sheet = [], []
-    for n, (i, j, between, beyond) in enumerate(pairs(len(paths))):
+    for n, (i, j, between, beyond) in enumerate(pairs(len(paths), gaps)):
         ctx = [i, j]
         for placement, targets in (("between", between), ("beyond", beyond)):
             if not targets:
@@ -221,6 +222,8 @@ def main() -> None:
     p.add_argument("--models", nargs="+", required=True,
                    help="SIZE:NAME[,NAME...] (a shipped name, or LABEL=FILE for a checkpoint "
                    "file)")
+    p.add_argument("--gaps", nargs="+", type=int, default=list(GAPS),
+                   help="the pairs' gaps in photos (the registered reading: 2 4)")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -238,7 +241,8 @@ def main() -> None:
             print(f"{capture}: not posed: {e}", flush=True)
     for size, models in by_size.items():
         for capture, result in posed.items():
-            got, sheet, near, far = capture_rows(capture, result, size, models)
+            got, sheet, near, far = capture_rows(capture, result, size, models,
+                                                 gaps=tuple(args.gaps))
             rows += got
             save_sheet(sheet, ["context i", "context j", "target", "copy", "plane sweep",
                                *models],
