@@ -131,8 +131,8 @@ def one_camera(paths: list[Path]) -> bool:
     seen = {exif_camera(p) for p in paths}
     if len(seen) == 1:
         return True
-    return all(make is None and model is None for make, model, *_ in seen) and len(
-        {size for *_, w, h in seen for size in [(w, h)]}) == 1
+    return (all(make is None and model is None for make, model, *_ in seen)
+            and len({(w, h) for *_, w, h in seen}) == 1)
 
 
 def gather_photos(photos: list[Path], folder: Path) -> list[str]:

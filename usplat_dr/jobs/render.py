@@ -218,10 +218,10 @@ def own_views(args: argparse.Namespace, trained_range: list[float] | None = None
         posed = True
     else:
         posed = False
-    scene = read_cameras(args.cameras, args.ignore_distortion)
-    views = context_views(args.images, scene, image_shape(args))
+    scene, shape = read_cameras(args.cameras, args.ignore_distortion), image_shape(args)
+    views = context_views(args.images, scene, shape)
     shapes = {tuple(int(n) for n in s) for s in scene.image_shapes}
-    for advice in sorted(filter(None, (crop_advice(s, image_shape(args)) for s in shapes))):
+    for advice in sorted(filter(None, (crop_advice(s, shape) for s in shapes))):
         print(advice)
     if args.near is not None:
         near, far, where = args.near, args.far, "--near/--far"

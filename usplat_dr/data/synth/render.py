@@ -9,7 +9,9 @@ scene; camera-space z, ``+inf`` where the ray misses. The colour image comes fro
 sensor; the tests pin that both agree (``tests/data/test_conventions.py``).
 """
 
+import functools
 import io
+import json
 import math
 
 import numpy as np
@@ -58,15 +60,28 @@ def intrinsics_for(fov_x_deg: float, resolution: tuple[int, int]) -> np.ndarray:
     return np.array([[fx, 0, 0.5], [0, fx * w / h, 0.5], [0, 0, 1]])
 
 
-def _texture(mi, material: dict) -> dict:
+@functools.lru_cache(maxsize=64)
+def _texture_image(spec_json: str) -> np.ndarray:
+    """``make_texture`` of a texture spec (as sorted JSON), built once for the colour and the
+    bump map of a surface (a photographic texture's crop and resize cost milliseconds)."""
+    image = make_texture(json.loads(spec_json))
+    image.flags.writeable = False
+    return image
+
+
+def _bitmap(mi, image: np.ndarray, material: dict, **extra) -> dict:
     s = material.get("uv_scale", 1.0)
-    image = make_texture(material["texture"])
+    # (a copy: Mitsuba's Bitmap takes writable arrays only, and the cached image is read-only)
+    return {"type": "bitmap", "bitmap": mi.Bitmap(np.array(image)), "filter_type": "bilinear",
+            "wrap_mode": "repeat", "to_uv": mi.ScalarTransform4f().scale([s, s, 1]), **extra}
+
+
+def _texture(mi, material: dict) -> dict:
+    image = _texture_image(json.dumps(material["texture"], sort_keys=True))
     if "albedo" in material:  # scaled in linear RGB (a float32 bitmap is linear to Mitsuba)
         image = (srgb_to_linear(image.astype(np.float32) / 255.0)
                  * material["albedo"]).astype(np.float32)
-    return {"type": "bitmap", "bitmap": mi.Bitmap(image),
-            "filter_type": "bilinear", "wrap_mode": "repeat",
-            "to_uv": mi.ScalarTransform4f().scale([s, s, 1])}
+    return _bitmap(mi, image, material)
 
 
 def _bsdf(mi, material: dict) -> dict:
@@ -75,12 +90,10 @@ def _bsdf(mi, material: dict) -> dict:
         return inner
     # relief from the texture's own luminance (a bump map shades; the geometry, and so the
     # depth, stay exact)
-    lum = make_texture(material["texture"]).astype(np.float32).mean(-1, keepdims=True) / 255.0
-    s = material.get("uv_scale", 1.0)
+    image = _texture_image(json.dumps(material["texture"], sort_keys=True))
+    lum = image.astype(np.float32).mean(-1, keepdims=True) / 255.0
     return {"type": "bumpmap", "scale": material["bump"], "bsdf": inner,
-            "arg": {"type": "bitmap", "bitmap": mi.Bitmap(lum), "raw": True,
-                    "filter_type": "bilinear", "wrap_mode": "repeat",
-                    "to_uv": mi.ScalarTransform4f().scale([s, s, 1])}}
+            "arg": _bitmap(mi, lum, material, raw=True)}
 
 
 def _bsdf_unbumped(mi, material: dict) -> dict:
@@ -187,6 +200,11 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
+def srgb8(x: np.ndarray) -> np.ndarray:
+    """uint8 sRGB of linear values (``linear_to_srgb``, rounded)."""
+    return (linear_to_srgb(x) * 255 + 0.5).astype(np.uint8)
+
+
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """The inverse of ``linear_to_srgb`` (IEC 61966-2-1) on sRGB values in [0, 1]."""
     return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
@@ -271,9 +289,8 @@ def camera_effects(linear: np.ndarray, effects: dict, frame: int) -> np.ndarray:
     balance[1] = 1.0
     x = np.clip(x * gain * balance, 0.0, None)
     x = x + rng.normal(0.0, 1.0, x.shape) * effects["noise"] * np.sqrt(x + 0.01)
-    srgb = (linear_to_srgb(x) * 255 + 0.5).astype(np.uint8)
     buffer = io.BytesIO()
-    Image.fromarray(srgb).save(buffer, format="JPEG", quality=int(effects["jpeg_quality"]))
+    Image.fromarray(srgb8(x)).save(buffer, format="JPEG", quality=int(effects["jpeg_quality"]))
     return rgb8(open_image(buffer.getvalue(), "a JPEG round trip"))
 
 
@@ -295,7 +312,7 @@ def render_spec(spec: dict, resolution: tuple[int, int], spp: int = 64, seed: in
         if "camera_effects" in spec:  # the photographic appearance
             images.append(camera_effects(img[..., :3], spec["camera_effects"], i))
         else:
-            images.append((linear_to_srgb(img[..., :3]) * 255 + 0.5).astype(np.uint8))
+            images.append(srgb8(img[..., :3]))
         depth, mat = trace_depth(mi, scene, np.asarray(spec["cameras"]["c2w"][i]), intr,
                                  resolution, codes)
         depths.append(depth.astype(np.float32))
