@@ -47,6 +47,46 @@ class Cameras:
         return Cameras(*(t.to(device) for t in (self.extrinsics, self.intrinsics, self.near,
                                                self.far)))
 
+    def scaled(self, factor: Float[Tensor, "b"]) -> "Cameras":
+        """The same cameras in a world scaled by ``factor`` (one per example) about its
+        origin: the centres and near/far multiplied, the rotations and intrinsics kept.
+
+        Examples:
+            >>> cams = Cameras(torch.eye(4).expand(1, 2, 4, 4).clone(),
+            ...                torch.eye(3).expand(1, 2, 3, 3), torch.ones(1, 2),
+            ...                torch.full((1, 2), 100.0))
+            >>> cams.extrinsics[0, 1, 0, 3] = 2.0
+            >>> half = cams.scaled(torch.tensor([0.5]))
+            >>> half.extrinsics[0, 1, 0, 3].item(), half.near.tolist(), half.far.tolist()
+            (1.0, [[0.5, 0.5]], [[50.0, 50.0]])
+        """
+        extrinsics, near, far = scale_world(self.extrinsics, self.near, self.far, factor)
+        return Cameras(extrinsics, self.intrinsics, near, far)
+
+
+def scale_world(extrinsics: Float[Tensor, "b n 4 4"], near: Float[Tensor, "b n"] | None,
+                far: Float[Tensor, "b n"] | None, factor: Float[Tensor, "b"]) -> tuple:
+    """Camera-to-world matrices and bounds in a world scaled by ``factor`` (one per example)
+    about its origin: ``(extrinsics, near, far)`` with the centres and bounds multiplied
+    (``None`` bounds stay ``None``)."""
+    f = factor.to(extrinsics.dtype)
+    out = extrinsics.clone()
+    out[..., :3, 3] = out[..., :3, 3] * f[:, None, None]
+    return (out, *(None if t is None else t * f[:, None].to(t.dtype) for t in (near, far)))
+
+
+def baseline_scale(extrinsics: Float[Tensor, "b v 4 4"]) -> Float[Tensor, "b"]:
+    """The distance between the first and the last context camera of each example: the unit of
+    the ``baseline`` gauge (pixelSplat's ``make_baseline_1``). Raises ``ValueError`` naming the
+    examples whose context cameras share a centre (no baseline, no scale to read)."""
+    scale = (extrinsics[:, 0, :3, 3] - extrinsics[:, -1, :3, 3]).norm(dim=-1)
+    bad = (~torch.isfinite(scale) | (scale < 1e-6)).nonzero().flatten().tolist()
+    if bad:
+        raise ValueError(f"the context cameras of example(s) {bad} share a centre (baseline "
+                         f"{scale[bad[0]].item():.2g}): a model in the 'baseline' gauge needs "
+                         f"two context views taken from different places")
+    return scale
+
 
 def look_at(
     eye: Float[Tensor, "*batch 3"],

@@ -26,3 +26,14 @@ class Gaussians:
 
     def __len__(self) -> int:
         return self.means.shape[1]
+
+    def scaled(self, factor: Float[Tensor, "batch"]) -> "Gaussians":
+        """The same Gaussians in a world scaled by ``factor`` (one per batch entry) about its
+        origin: means and scales times ``factor``, covariances times its square."""
+        f = factor.to(self.means.dtype)
+        return Gaussians(means=self.means * f[:, None, None],
+                         covariances=self.covariances * (f * f)[:, None, None, None].to(
+                             self.covariances.dtype),
+                         harmonics=self.harmonics, opacities=self.opacities,
+                         scales=self.scales * f[:, None, None].to(self.scales.dtype),
+                         rotations=self.rotations)

@@ -17,7 +17,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
-from usplat_dr.geometry.cameras import Cameras
+from usplat_dr.geometry.cameras import Cameras, baseline_scale, scale_world
 from usplat_dr.model.auto_budget import AutoBudget, Calibration, choose_keep, image_psnr
 from usplat_dr.model.budget import (
     GaussianBudget,
@@ -69,6 +69,9 @@ DEFAULT_INFERENCE_PRUNE: PruneSettings | None = None
 # Paper sec. "Results reported": the full model has 38.1M parameters.
 PAPER_PARAMETERS = 38.1e6
 
+#: ``UniqueSplatCfg.gauge``'s values.
+GAUGES = ("world", "baseline")
+
 
 @dataclass(frozen=True)
 class UniqueSplatCfg:
@@ -112,6 +115,15 @@ class UniqueSplatCfg:
     # Gaussians to the budget. Off: the model, its checkpoints and MVSplat's load as before.
     importance: bool = False
     importance_hidden: int = 32  # width of the importance head and of the adaptation MLP
+    # The unit the network works in. "world": the cameras' own (MVSplat's: its cost volume,
+    # depth head and camera embeddings read absolute translations and inverse depths, so a
+    # prediction depends on the unit a capture was posed in). "baseline": every example is
+    # divided by the distance between its first and last context cameras (translations and
+    # near/far), the network runs there and its Gaussians are scaled back, so the prediction
+    # is the same whatever unit the cameras come in (pixelSplat's make_baseline_1 with its
+    # bounds scaled, inside the model so that training, evaluation and users' photos share
+    # it; docs/model.md, "The gauge").
+    gauge: str = "world"
 
     def __post_init__(self):
         check_bounds(self, {"embed_dim": 8192, "hyper_hidden": 4096, "specific_hidden": 4096,
@@ -133,6 +145,8 @@ class UniqueSplatCfg:
                      "importance_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.gauge not in GAUGES:
+            raise ValueError(f"gauge must be one of {GAUGES}, got {self.gauge!r}")
         if self.view_features not in ("resnet18", "primary"):
             raise ValueError(f"view_features must be 'resnet18' or 'primary', got "
                              f"{self.view_features!r}")
@@ -422,6 +436,10 @@ class UniqueSplat(nn.Module):
                              f"AutoBudget or None, got {budget!r}")
         hooks = hooks or StudyHooks()
         encoding, delta_w = hooks.encoding, hooks.delta_w
+        scale = self.gauge_scale(context.extrinsics)  # None in the world gauge
+        world_context, world_targets = context, targets
+        if scale is not None:  # the network runs in the gauge, the Gaussians come back
+            context, targets = context.scaled(1.0 / scale), targets.scaled(1.0 / scale)
         extrinsics, intrinsics, near, far = (context.extrinsics, context.intrinsics,
                                              context.near, context.far)
         target_extrinsics, target_intrinsics, target_near, target_far = (
@@ -434,7 +452,7 @@ class UniqueSplat(nn.Module):
         n = self.check_targets(b, target_extrinsics, target_intrinsics, target_near, target_far)
         with self._autocast(images.device):
             if encoding is None:
-                depth = self.encode(images, extrinsics, intrinsics, near, far)
+                depth = self._encode(images, extrinsics, intrinsics, near, far)
             else:
                 depth = self._check_encoding(encoding, b, v, h, w)
             if delta_w is None:
@@ -448,6 +466,9 @@ class UniqueSplat(nn.Module):
             depth_out = self._run_heads(depth, weights, deltas, near, far, v, b, nb)
         gaussians = self._gaussians_per_target(depth_out, extrinsics, intrinsics, (h, w),
                                                global_step, b, n, nb)
+        context, targets = world_context, world_targets
+        if scale is not None:
+            gaussians = gaussians.scaled(scale.repeat_interleave(n))
         kept = len(gaussians)
         if isinstance(budget, AutoBudget):
             budget, prune = self._auto_budget(budget, images, context, depth, hooks, prune, aux)
@@ -464,6 +485,9 @@ class UniqueSplat(nn.Module):
         aux["context_depths"] = depth_out.depths.view(b, nb, v, h, w, -1)[:, 0, ..., 0].float()
         coarse_disparity = depth.disp_full.float().view(v, b, h, w).transpose(0, 1)
         aux["context_coarse_depths"] = 1.0 / coarse_disparity
+        if scale is not None:  # back in the cameras' unit
+            for key in ("context_depths", "context_coarse_depths"):
+                aux[key] = aux[key] * scale.float()[:, None, None, None]
         out = UniqueSplatOutput(gaussians=gaussians, num_targets=n, per_target=bool(deltas),
                                 aux=aux)
         if render:
@@ -585,11 +609,25 @@ class UniqueSplat(nn.Module):
                 aux["unbudgeted"] = gaussians
         return chosen.gaussians, chosen.kept
 
+    def gauge_scale(self, extrinsics: Float[Tensor, "b v 4 4"]) -> Tensor | None:
+        """The length, in the cameras' unit, of one unit of the gauge the network works in
+        (``UniqueSplatCfg.gauge``), per example; ``None`` in the world gauge."""
+        if self.cfg.gauge == "world":
+            return None
+        return baseline_scale(extrinsics)
+
     def encode(self, images: Float[Tensor, "b v 3 h w"], extrinsics: Float[Tensor, "b v 4 4"],
                intrinsics: Float[Tensor, "b v 3 3"], near: Float[Tensor, "b v"],
                far: Float[Tensor, "b v"]) -> DepthOutputs:
         """The primary network up to its heads (backbone, transformer, cost volume, U-Nets):
-        what ``forward`` computes once per scene, reusable as its ``encoding``."""
+        what ``forward`` computes once per scene, reusable as its ``encoding`` (in the
+        model's gauge; the cameras are given in their own unit)."""
+        scale = self.gauge_scale(extrinsics)
+        if scale is not None:
+            extrinsics, near, far = scale_world(extrinsics, near, far, 1.0 / scale)
+        return self._encode(images, extrinsics, intrinsics, near, far)
+
+    def _encode(self, images, extrinsics, intrinsics, near, far) -> DepthOutputs:
         return self.primary.encode(images, extrinsics, intrinsics, near, far,
                                    run_heads=False)[2]
 
@@ -651,6 +689,11 @@ class UniqueSplat(nn.Module):
                 raise ValueError("near and far (or encoding) are needed: this model's E_H "
                                  "reads the primary network's features")
             encoding = self.encode(images, extrinsics, intrinsics, near, far)
+        scale = self.gauge_scale(extrinsics)
+        if scale is not None:  # the branch reads the cameras in the network's gauge
+            target_extrinsics, target_near, target_far = scale_world(
+                target_extrinsics, target_near, target_far, 1.0 / scale)
+            extrinsics = scale_world(extrinsics, None, None, 1.0 / scale)[0]
         return self._target_weights(images, extrinsics, intrinsics, target_extrinsics,
                                     target_intrinsics, target_near, target_far, encoding)[1]
 
