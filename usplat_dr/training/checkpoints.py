@@ -389,8 +389,9 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
 
 #: The fields a checkpoint may differ in from a model that starts from it with or without
 #: the importance head (``_load_adding_importance``); the ResNet18 file is the training
-#: machine's, its weights are in the checkpoint.
-BUDGET_FIELDS = ("importance", "importance_hidden", "resnet_weights")
+#: machine's, its weights are in the checkpoint; the gauge changes the unit the network reads
+#: its cameras in, none of its weights (a world-gauge model fine-tuned in the baseline gauge).
+BUDGET_FIELDS = ("importance", "importance_hidden", "resnet_weights", "gauge")
 #: ... and with another view-specific branch (``_load_matching``).
 BRANCH_FIELDS = (*BUDGET_FIELDS, "specific_hidden", "view_features", "delta_rank",
                  "delta_init_std", "resnet_stages", "feature_dim", "proj_samples",
