@@ -1,5 +1,5 @@
 """Can a scene's Gaussian count be chosen without its target images? The context-view proxy
-(train/studies/README.md, "An automatic count: the context-view proxy").
+(train/studies/LOG.md, "An automatic count: the context-view proxy").
 
 Per held-out scene and budget (a fraction of the Gaussians, ranked by ``--rank-by``): the
 proxy loss, PSNR of the context views rendered with all Gaussians minus with the budget (the

@@ -1,7 +1,7 @@
 """Does the automatic count follow content? Per held-out scene, the fraction of the Gaussians
 ``usplat eval --gaussians auto`` rendered against the share of the scene's context pixels that
 are textured (the synthetic scenes know each pixel's material), by scene kind
-(train/studies/README.md, "An automatic count").
+(train/studies/LOG.md, "An automatic count").
 
     python train/studies/auto_content.py --eval outputs/auto_eval/auto2 \\
         --data outputs/big/test5000 --out docs/auto_keep_content.png

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The verdict runs' kept states scored as the verdict reads them (train/studies/README.md, "The
+# The verdict runs' kept states scored as the verdict reads them (train/studies/LOG.md, "The
 # verdict by the paper's protocol with extrapolated targets" and "(c) at 128x128 and the verdict
 # there"): each run's step-STOP checkpoint exported as shipped weights (float16, loadable with
 # torch.load(weights_only=True)), then `usplat eval` on the held-out splits with one thread.

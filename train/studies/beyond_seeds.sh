@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The verdict with extrapolated targets (train/studies/README.md, "The verdict with
+# The verdict with extrapolated targets (train/studies/LOG.md, "The verdict with
 # extrapolated targets"): the live arm's recipe at 8 scenes a step with targets up to 4 frames
 # beyond the context views, one run per seed, one thread each, JOBS at a time, each stopped
 # (SIGINT: it saves) once its step-STOP checkpoint is kept; the schedule stays the 6,000-step

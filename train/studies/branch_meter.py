@@ -1,6 +1,6 @@
 """The view-specificity meter (``usplat_dr.evaluation.view_specificity``) of checkpoints on
 sets of scenes: training scenes and held-out ones, one table. What the live-branch study reads
-(train/studies/README.md, "A live view-specific branch").
+(train/studies/LOG.md, "A live view-specific branch").
 
     python train/studies/branch_meter.py --checkpoints tiny_full outputs/live/g02_lr1e-3 \\
         --sets train=outputs/big/train480/train:30 heldout=outputs/big/test2000:60 \\

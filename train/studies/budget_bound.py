@@ -1,5 +1,5 @@
 """What K Gaussians can reach at all: the bound that the learned Gaussian budget is judged by
-(train/studies/README.md, "The bound of a Gaussian budget").
+(train/studies/LOG.md, "The bound of a Gaussian budget").
 
 For each held-out scene and target view, the model predicts the target's Gaussians, all of
 them and K of them by ``--rank-by`` (the feed-forward budget, adapted as at inference); then

@@ -1,6 +1,6 @@
 """The Gaussian budget's chart: what keeping a fraction of the Gaussians costs on the held-out
 set, per ranking, beside the bound (what that many Gaussians reach when free to move), the
-merge-then-drop rule and the automatic count (train/studies/README.md, "The bound of a Gaussian
+merge-then-drop rule and the automatic count (train/studies/LOG.md, "The bound of a Gaussian
 budget" and "An automatic count").
 
     python train/studies/budget_chart.py --out docs/budget_chart.png \\

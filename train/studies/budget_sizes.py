@@ -1,5 +1,5 @@
 """The Gaussian budget at two image sizes: do denser pixels leave more to drop?
-(train/studies/README.md, "The learned budget at 128x128", its rule fixed before its runs.)
+(train/studies/LOG.md, "The learned budget at 128x128", its rule fixed before its runs.)
 
     python train/studies/budget_sizes.py --small outputs/budget128/64_{learned,dither} \\
         --large outputs/budget128/128_{learned,dither} --out docs/budget_chart_128.png

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # What `bash scripts/run.sh gpu-train` needs on a GPU machine, made here (Mitsuba renders the
-# data; the GPU machine has none): the registered 256x256 sets (train/studies/README.md, "A GPU
+# data; the GPU machine has none): the registered 256x256 sets (train/studies/LOG.md, "A GPU
 # path to 256x256") rendered with `usplat synth`, packed with carry_sets.py into GPUDATA, and
 # the drjit wheel for the GPU machine's Python downloaded into .whl/; then what travels is
 # weighed against the 64 MiB a call may carry.

@@ -3,7 +3,7 @@
 # (INIT, default the shipped tiny_baseline_128) at SIZE x SIZE (default 256) on a synthetic set
 # packed here by carry_sets.py (Mitsuba need not be there), for SECONDS of training, then scores
 # it on the carried held-out set against INIT's renders upsampled 2x (res128_eval.py --size),
-# and brings back its whole state, a shippable .pt and the scores (train/studies/README.md,
+# and brings back its whole state, a shippable .pt and the scores (train/studies/LOG.md,
 # "Four times the pixels").
 #
 #   bash scripts/run.sh gpu-prepare     # here: renders and packs .gpudata256, fetches .whl

@@ -19,7 +19,7 @@ weight matched).
     python train/studies/graft_branch.py --base tiny_baseline_128 --branch DONOR.pt \\
         --out outputs/beyond128_graft/graft.pt
 
-(train/studies/README.md, "(c) at 128x128 with its branch started open").
+(train/studies/LOG.md, "(c) at 128x128 with its branch started open").
 """
 
 import argparse

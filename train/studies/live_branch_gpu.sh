@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The live-branch arms at a scale one CPU core cannot reach: several training runs side by side
 # on one GPU for a fixed wall time each, then the view-specificity meter of every run's last
-# checkpoint on training and held-out scenes (train/studies/README.md, "A live view-specific
+# checkpoint on training and held-out scenes (train/studies/LOG.md, "A live view-specific
 # branch"). Data: sets packed here by carry_sets.py (Mitsuba need not be there).
 #
 #   python train/studies/carry_sets.py pack --out .gpudata \

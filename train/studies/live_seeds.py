@@ -1,5 +1,5 @@
 """Seeds of the live view-specific arm, read by the rule registered for them
-(train/studies/README.md, "Seeds of the live arm"): per seed and split, the view-specificity
+(train/studies/LOG.md, "Seeds of the live arm"): per seed and split, the view-specificity
 meter of its (c) and (c) - (a) in PSNR over the split's scenes; a seed counts only if its
 branch is live on the standard split (or the one ``--live-split`` names); over the live seeds,
 the verdict's rule on the seed-level t interval (with one live seed, the interval over scenes,

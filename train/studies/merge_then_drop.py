@@ -1,5 +1,5 @@
 """Merge, then drop: does merging the two context views' copies of a surface before a Gaussian
-budget beat dropping alone? (train/studies/README.md, "Merge, then drop").
+budget beat dropping alone? (train/studies/LOG.md, "Merge, then drop").
 
 The rule, per target set of a pixel-aligned model with two context views and one Gaussian per
 pixel: each Gaussian of view 0 projects into view 1 (the context cameras); the view-1

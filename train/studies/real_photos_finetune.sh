@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The fine-tuning of the real-photographs study (train/studies/README.md, "Real photographs"):
+# The fine-tuning of the real-photographs study (train/studies/LOG.md, "Real photographs"):
 # (c) from tiny_full and (a) from tiny_baseline at 64x64 on the photographic and diffuse
 # appearances of the first 200 seed-100 training scenes, one thread each, side by side.
 # Resumable: run it again after a kill (--resume continues each run from its last checkpoint).

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The gauge runs of the real-photographs study (train/studies/README.md, "The gauge"): (c)
+# The gauge runs of the real-photographs study (train/studies/LOG.md, "The gauge"): (c)
 # fine-tuned from tiny_full at 64x64 on the diffuse appearance of the first 200 seed-100
 # training scenes, in the baseline gauge and, as its control, in the world gauge, the same in
 # everything else, one thread each, side by side. Resumable: run it again after a kill.

@@ -1,4 +1,4 @@
-"""The 128x128 (a) against the 64x64 one, by the test registered for it (train/studies/README.md,
+"""The 128x128 (a) against the 64x64 one, by the test registered for it (train/studies/LOG.md,
 "Four times the pixels"): on a held-out set rendered at 128x128, per scene of the standard
 split, PSNR and SSIM of the 128x128 model's renders at 128x128 against those of the 64x64
 model (its inputs resized to 64x64 by the data loader, as any evaluation at 64x64) upsampled 2x

@@ -11,7 +11,7 @@ Recipes: ``full`` (``usplat_dr.DEMO_MINUTES`` minutes on a 2-core CPU, by host;
 BENCHMARKS.md) and ``quick`` (a
 minute or two, for CI).
 The multi-seed verdict (fine-tuning seeds x held-out scenes) is
-``train/studies/verdict_study.py``; its result is in train/studies/README.md.
+``train/studies/verdict_study.py``; its result is in train/studies/LOG.md.
 """
 
 import argparse

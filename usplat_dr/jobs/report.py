@@ -168,7 +168,7 @@ def verdict_lines(r: DemoResults) -> list[str]:
              "intervals over scenes. One fine-tuning seed: the interval does not cover seed "
              "variation, so no row here is a verdict; the multi-seed one "
              "(`train/studies/verdict_study.py`) follows the table, and "
-             "train/studies/README.md (\"View conditioning as the paper has it\") has it in "
+             "train/studies/LOG.md (\"View conditioning as the paper has it\") has it in "
              "full with the oracle per layer "
              "(`train/studies/oracle_delta.py`)."), "", verdict_table(r.verdict), "",
             "![verdict](verdict.png)", "", *registered_lines(r.registered)]

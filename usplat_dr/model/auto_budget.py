@@ -32,7 +32,7 @@ budgets rendered), the Gaussians each target kept ``out.aux["kept"]`` and render
 merge ``out.aux["rendered"]``. The calibrations of the shipped models are in their manifest
 entries (``auto_budget``); train/studies/auto_budget_proxy.py makes one for any checkpoint and
 development set (``--ship``), and measures what the count keeps and loses on held-out scenes
-(train/studies/README.md, "An automatic count").
+(train/studies/LOG.md, "An automatic count").
 """
 
 import math

@@ -84,7 +84,7 @@ class UniqueSplatCfg:
     # as the paper has it ("integrated into the convolutional layers of the predictor" that
     # outputs centre, opacity, covariance and colour): ``to_disparity`` (depth, opacity) and
     # ``to_gaussians`` (colour, covariance, offsets). Fewer layers cost less per target
-    # (``train/bench/uniquesplat.py --layers``; train/studies/README.md, "What view
+    # (``train/bench/uniquesplat.py --layers``; train/studies/LOG.md, "What view
     # conditioning costs").
     target_layers: tuple[str, ...] = INJECTABLE
     specific_layers: tuple[str, ...] = INJECTABLE

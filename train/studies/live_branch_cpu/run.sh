@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The primary-features arm (E_H = the primary network's features, gate 0.02) at batch 16 on
-# one CPU core, resumable across machines (train/studies/README.md, "The primary-features arm
+# one CPU core, resumable across machines (train/studies/LOG.md, "The primary-features arm
 # at batch 16 on one CPU core"). The run folder is outputs/live/cpu_primary_b16; where it is
 # missing, it starts from the run's state at its last stop (step 788, optimiser included), kept
 # in the repository's history (commit a6aca56, train/studies/live_branch_cpu/last.ckpt; 13 MB,

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One more seed of the live arm (E_H = the primary network's features, gate 0.02, the branch
 # trained alone from tiny_full at 32 scenes a step; seed 0 is tiny_full_live, trained on a GPU)
-# on one CPU core, resumable across machines and days (train/studies/README.md, "Seeds of the
+# on one CPU core, resumable across machines and days (train/studies/LOG.md, "Seeds of the
 # live arm"). About 15 s a step on one core of an AVX-512 host: the step-2,000 checkpoint the
 # verdict reads is about 8 hours away.
 #

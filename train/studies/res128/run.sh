@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The primary network (a) at 128x128, fine-tuned from the shipped 64x64 tiny_baseline on the
-# same 480 scenes rendered at 128x128, one thread, resumable (train/studies/README.md, "Four
+# same 480 scenes rendered at 128x128, one thread, resumable (train/studies/LOG.md, "Four
 # times the pixels: models at 128x128"). About 4x a 64x64 step (0.6-0.7 s on one thread).
 #
 #   nohup bash train/studies/res128/run.sh > outputs/res128_a.log 2>&1 &

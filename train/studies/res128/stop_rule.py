@@ -1,4 +1,4 @@
-"""The pre-registered stopping rule of the 128x128 (a) (train/studies/README.md, "Four times
+"""The pre-registered stopping rule of the 128x128 (a) (train/studies/LOG.md, "Four times
 the pixels: models at 128x128"): the first multiple of 1,000 steps where the mean training PSNR
 of the last 1,000 steps is less than ``--min-gain`` dB above the mean of the 1,000 before.
 

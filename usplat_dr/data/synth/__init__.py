@@ -179,7 +179,7 @@ def synthesize(out: str | os.PathLike, scenes: int, frames: int,
     shiny surfaces: broad highlights); the same seed gives the same geometry and cameras in
     all three. ``spp``: Mitsuba samples per pixel (None: ``DEFAULT_SPP`` of the
     appearance: path tracing's noise on shiny surfaces needs 256 to stay below what changes
-    with the viewpoint; train/studies/README.md, "The view-dependent appearance, version
+    with the viewpoint; train/studies/LOG.md, "The view-dependent appearance, version
     2"). ``seed``: None takes the stage's own (``DEFAULT_SEEDS``); a given seed makes the
     same bytes whatever the stage. The test stage's metadata goes into ``out``, any other
     stage's into ``out/<stage>`` (``metadata_folder``); a stage whose scenes another stage
