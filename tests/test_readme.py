@@ -107,6 +107,20 @@ def test_no_page_speaks_of_the_process():
     assert not hits, "process words (issue/stop numbers) in:\n" + "\n".join(hits)
 
 
+#: The longest a Markdown page may be, logs and histories apart (their dated notes stand word
+#: for word): a page past it is a notebook, and its reader wants an index.
+MAX_PAGE_LINES = 600
+
+
+def test_pages_read_as_pages():
+    pages = [p for p in ROOT.glob("**/*.md")
+             if not {".venv", "outputs", ".git", "node_modules"} & set(p.relative_to(ROOT).parts)
+             and p.stem not in ("LOG", "history") and ".egg-info" not in str(p)]
+    long = {str(p.relative_to(ROOT)): n for p in pages
+            if (n := len(p.read_text().splitlines())) > MAX_PAGE_LINES}
+    assert not long, f"pages over {MAX_PAGE_LINES} lines (an index, with the notes in a LOG.md): {long}"
+
+
 # ---- Links ----
 
 
@@ -134,7 +148,8 @@ def anchors(path: Path) -> set[str]:
 
 
 def test_relative_links_resolve():
-    pages = [README, *sorted((ROOT / "docs").glob("*.md"))]
+    pages = [README, ROOT / "BENCHMARKS.md", *sorted((ROOT / "docs").glob("*.md")),
+             *sorted((ROOT / "train").glob("*/README.md"))]
     broken = []
     for page in pages:
         text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.MULTILINE | re.DOTALL)
