@@ -118,7 +118,8 @@ def test_pages_read_as_pages():
              and p.stem not in ("LOG", "history") and ".egg-info" not in str(p)]
     long = {str(p.relative_to(ROOT)): n for p in pages
             if (n := len(p.read_text().splitlines())) > MAX_PAGE_LINES}
-    assert not long, f"pages over {MAX_PAGE_LINES} lines (an index, with the notes in a LOG.md): {long}"
+    assert not long, (f"pages over {MAX_PAGE_LINES} lines (an index, with the notes in a "
+                      f"LOG.md): {long}")
 
 
 # ---- Links ----

@@ -47,7 +47,7 @@ class Cameras:
         return Cameras(*(t.to(device) for t in (self.extrinsics, self.intrinsics, self.near,
                                                self.far)))
 
-    def scaled(self, factor: Float[Tensor, "b"]) -> "Cameras":
+    def scaled(self, factor: Float[Tensor, " b"]) -> "Cameras":
         """The same cameras in a world scaled by ``factor`` (one per example) about its
         origin: the centres and near/far multiplied, the rotations and intrinsics kept.
 
@@ -65,7 +65,7 @@ class Cameras:
 
 
 def scale_world(extrinsics: Float[Tensor, "b n 4 4"], near: Float[Tensor, "b n"] | None,
-                far: Float[Tensor, "b n"] | None, factor: Float[Tensor, "b"]) -> tuple:
+                far: Float[Tensor, "b n"] | None, factor: Float[Tensor, " b"]) -> tuple:
     """Camera-to-world matrices and bounds in a world scaled by ``factor`` (one per example)
     about its origin: ``(extrinsics, near, far)`` with the centres and bounds multiplied
     (``None`` bounds stay ``None``)."""
@@ -75,7 +75,7 @@ def scale_world(extrinsics: Float[Tensor, "b n 4 4"], near: Float[Tensor, "b n"]
     return (out, *(None if t is None else t * f[:, None].to(t.dtype) for t in (near, far)))
 
 
-def baseline_scale(extrinsics: Float[Tensor, "b v 4 4"]) -> Float[Tensor, "b"]:
+def baseline_scale(extrinsics: Float[Tensor, "b v 4 4"]) -> Float[Tensor, " b"]:
     """The distance between the first and the last context camera of each example: the unit of
     the ``baseline`` gauge (pixelSplat's ``make_baseline_1``). Raises ``ValueError`` naming the
     examples whose context cameras share a centre (no baseline, no scale to read)."""

@@ -27,7 +27,7 @@ class Gaussians:
     def __len__(self) -> int:
         return self.means.shape[1]
 
-    def scaled(self, factor: Float[Tensor, "batch"]) -> "Gaussians":
+    def scaled(self, factor: Float[Tensor, " batch"]) -> "Gaussians":
         """The same Gaussians in a world scaled by ``factor`` (one per batch entry) about its
         origin: means and scales times ``factor``, covariances times its square."""
         f = factor.to(self.means.dtype)
