@@ -1,9 +1,10 @@
 """The 128x128 (a) against the 64x64 one, by the test registered for it (train/studies/LOG.md,
 "Four times the pixels"): on a held-out set rendered at 128x128, per scene of the standard
-split, PSNR and SSIM of the 128x128 model's renders at 128x128 against those of the 64x64
-model (its inputs resized to 64x64 by the data loader, as any evaluation at 64x64) upsampled 2x
-by bicubic interpolation; AbsRel of each at its own size; and both models at 64x64 (what
-resizing costs). Paired differences with 95% t intervals over scenes.
+split (``--split`` names another), PSNR and SSIM of the 128x128 model's renders at 128x128
+against those of the 64x64 model (its inputs resized to 64x64 by the data loader, as any
+evaluation at 64x64) upsampled 2x by bicubic interpolation; AbsRel of each at its own size;
+and both models at 64x64 (what resizing costs). Paired differences with 95% t intervals over
+scenes.
 
     python train/studies/res128_eval.py --model128 step_0002000.ckpt \\
         --model64 tiny_baseline --data outputs/big128/test5000 --out outputs/res128_eval
@@ -93,6 +94,8 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu", help="cpu, or cuda for a GPU")
     p.add_argument("--data", required=True, help="a usplat synth test root at --size")
     p.add_argument("--scenes", type=int, default=None, help="the first N scenes (default all)")
+    p.add_argument("--split", default="standard",
+                   help="the evaluation split of --data (standard, extrapolation, ...)")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--images", type=int, default=4, help="scenes shown in comparison.png")
     p.add_argument("--rendered-up", action="store_true",
@@ -107,7 +110,7 @@ def main(argv=None) -> int:
     hi, lo = args.size, args.size // 2
     big = load(args.model128, device=args.device).eval()
     small = load(args.model64, device=args.device).eval()
-    set128, index, scenes = held_out_scenes(args.data, "standard", args.scenes, size=hi)
+    set128, index, scenes = held_out_scenes(args.data, args.split, args.scenes, size=hi)
     set64 = {**set128, "image_shape": [lo, lo]}
     rows, shown = [], []
     # one pass over the chunks at each size (the same scenes, in the same order)
@@ -155,7 +158,8 @@ def main(argv=None) -> int:
         return {"mean": float(np.nanmean(d)), "low": low, "high": high}
 
     summary = {
-        "scenes": len(rows), "data": str(args.data), "model128": args.model128,
+        "scenes": len(rows), "data": str(args.data), "split": args.split,
+        "model128": args.model128,
         "model64": args.model64,
         "means": {key: float(np.nanmean(v)) for key, v in col.items()},
         "at128": {"psnr": paired("psnr_128", "psnr_64_up"),
