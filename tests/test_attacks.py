@@ -758,7 +758,8 @@ def test_settings_out_of_range_end_in_one_line(tmp_path, capsys, monkeypatch, ar
 
 @pytest.mark.parametrize("kind", ["float8", "sparse", "meta", "quantised"])
 def test_weights_of_the_right_shape_but_no_usable_tensor_name_themselves(tmp_path, kind):
-    from usplat_dr.training.checkpoints import CHECKPOINTS, load
+    from usplat_dr.training.checkpoints import CHECKPOINTS
+    from usplat_dr.training.loader import load
 
     state = torch.load(CHECKPOINTS / "tiny_baseline.pt", weights_only=True)
     name = next(k for k, v in state["model"].items() if v.is_floating_point())

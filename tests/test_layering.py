@@ -66,7 +66,7 @@ def imports(name: str, path: Path) -> set[str]:
 
 #: Imports the rule allows upward: the package's ``__getattr__`` hands out ``usplat_dr.load``
 #: on first use (``import usplat_dr`` itself imports no torch: tested below).
-LAZY_EXPORTS = {"usplat_dr": {"usplat_dr.training.checkpoints"}}
+LAZY_EXPORTS = {"usplat_dr": {"usplat_dr.training.loader"}}
 GRAPH = {name: imports(name, path) - {name} - LAZY_EXPORTS.get(name, set())
          for name, path in MODULES.items()}
 
@@ -328,6 +328,6 @@ def test_script_rules_catch(code, what):
 
 def test_the_lazy_export_imports_nothing_until_used():
     code = ("import sys, usplat_dr; assert 'torch' not in sys.modules; "
-            "from usplat_dr.training.checkpoints import load; assert usplat_dr.load is load")
+            "from usplat_dr.training.loader import load; assert usplat_dr.load is load")
     subprocess.run([sys.executable, "-c", code], check=True)
 

@@ -19,12 +19,12 @@ DEMO_MINUTES = "4-14"
 
 
 def __getattr__(name: str):
-    """``usplat_dr.load``: ``usplat_dr.training.checkpoints.load`` (a model from a shipped
+    """``usplat_dr.load``: ``usplat_dr.training.loader.load`` (a model from a shipped
     checkpoint's name, a training checkpoint or an MVSplat file), imported on first use so
     that importing the package stays free of torch."""
     if name == "load":
         # lazy: the package must import before torch (see above); training needs torch
-        from usplat_dr.training.checkpoints import load
+        from usplat_dr.training.loader import load
         return load
     raise AttributeError(f"module 'usplat_dr' has no attribute {name!r}")
 

@@ -35,6 +35,8 @@ COMMANDS = {
              "predicts and renders that view's own Gaussians; (a)/(c), colour/depth/opacity; "
              "or a 3DGS PLY"),
     "export-ply": "the Gaussians predicted for one target view, as a standard 3DGS PLY",
+    "models": ("the shipped models, one line each (name, variant, size, purpose, default); "
+               "--all with the study ones"),
     "bench": ("speed against accuracy: train (or reuse) size presets x variants on the demo's "
               "data, measure time per view, memory, Gaussians and accuracy; CSV + chart in "
               "OUT/bench"),
@@ -95,7 +97,7 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
 
 #: Commands that choose no threads here: ``doctor`` reports the choice, and ``train``'s trainer
 #: makes it (its ``threads`` setting first; ``usplat_dr.training.distributed``).
-NO_THREADS = {"doctor", "train"}
+NO_THREADS = {"doctor", "models", "train"}
 
 
 def use_free_cores() -> None:

@@ -94,7 +94,7 @@ def test_measure_sweeps_gaussian_budgets_beside_pruning(tmp_path, caplog):
     from usplat_dr.data.synth import synthesize
     from usplat_dr.jobs.bench import measure, write_results
     from usplat_dr.model import UniqueSplat
-    from usplat_dr.training.checkpoints import load
+    from usplat_dr.training.loader import load
 
     caplog.set_level(logging.ERROR, logger="usplat_dr.model.uniquesplat")
     root = tmp_path / "data"
@@ -140,7 +140,7 @@ def test_measure_times_the_automatic_count_beside_fixed_budgets(tmp_path, caplog
 
     from usplat_dr.data.synth import synthesize
     from usplat_dr.jobs.bench import measure, write_results
-    from usplat_dr.training.checkpoints import load
+    from usplat_dr.training.loader import load
 
     caplog.set_level(logging.ERROR, logger="usplat_dr.model.uniquesplat")
     root = tmp_path / "data"

@@ -32,7 +32,8 @@ def test_every_option_of_every_command_has_help_and_commands_run_in_workflow_ord
     assert not missing, missing
     # what a user does first comes first in `usplat --help`
     assert list(COMMANDS) == ["demo", "synth", "import", "pose", "train", "eval", "render", "view",
-                              "export-ply", "bench", "fit", "params", "render-demo", "doctor"]
+                              "export-ply", "models", "bench", "fit", "params", "render-demo",
+                              "doctor"]
 
 
 @pytest.mark.parametrize("module", ["synth", "import_", "fit"])

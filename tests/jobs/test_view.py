@@ -46,14 +46,14 @@ def truth(tmp_path_factory):
 
 def own_args(truth, *extra: str) -> argparse.Namespace:
     images = [str(truth.root / "images" / truth.names[i]) for i in (1, 3)]
-    return parse("--checkpoint", "tiny_full", "--images", *images, "--cameras",
+    return parse("--images", *images, "--cameras",
                  str(truth.root / "sparse" / "0"), *extra)
 
 
 @pytest.fixture(scope="module")
 def scene(truth):
-    """tiny_full and (the default comparison) tiny_baseline on two of the truth's views, at
-    64x64 (own images without --image-shape get the 128x128 members: tested below)."""
+    """The default model (full-64) and its default comparison (baseline-64) on two of the
+    truth's views, at 64x64."""
     return view.scene_from_args(own_args(truth, "--image-shape", "64", "64"))
 
 
@@ -176,17 +176,17 @@ def test_while_a_render_runs_only_the_newest_camera_waits():
 
 # ---- One view ----------------------------------------------------------------------------
 
-def test_own_photographs_open_with_the_128x128_models(truth):
-    # no --image-shape: own images get the largest shipped size of both models, (c) beside (a)
+def test_own_photographs_open_with_the_128x128_c(truth):
+    # no --checkpoint and no --image-shape: own images get the largest shipped (c), beside the
+    # (a) with a user name nearest its size (the 128x128 (a) has none)
     wide = view.scene_from_args(own_args(truth))
-    assert wide.labels == ["(c) UniqueSplat: tiny_full_128",
-                           "(a) primary network: tiny_baseline_128"]
+    assert wide.labels == ["(c) UniqueSplat: full-128", "(a) primary network: baseline-64"]
     v = wide.render(wide.labels[0], *wide.start())
     assert v.color.shape == (128, 128, 3) and v.gaussians == 2 * 128 * 128
 
 
 def test_a_view_is_what_predict_renders_for_that_camera(scene, truth):
-    assert scene.labels == ["(c) UniqueSplat: tiny_full", "(a) primary network: tiny_baseline"]
+    assert scene.labels == ["(c) UniqueSplat: full-64", "(a) primary network: baseline-64"]
     c2w, k = scene.start()
     c2w = c2w.copy()
     c2w[:3, 3] += 0.3 * c2w[:3, 0]  # a step to the right of the first context camera
@@ -195,7 +195,7 @@ def test_a_view_is_what_predict_renders_for_that_camera(scene, truth):
     assert v.gaussians == 2 * 64 * 64  # pixel-aligned: one per context pixel
     assert v.seconds > 0
 
-    model = usplat_dr.load("tiny_full")
+    model = usplat_dr.load("full-64")
     views = context_views([truth.root / "images" / truth.names[i] for i in (1, 3)],
                           read_cameras(truth.root / "sparse" / "0"), (64, 64))
     pred = model.predict(views.images, intrinsics=views.intrinsics,
@@ -229,9 +229,9 @@ def test_a_view_is_what_predict_renders_for_that_camera(scene, truth):
 def test_a_dataset_scene_seen_from_its_context_cameras_shows_their_images(protocol_set):
     """--data: each context camera, passed through viser's camera (wxyz, position, fov,
     aspect) and back, renders its own image and not the other one."""
-    scene = view.scene_from_args(parse("--checkpoint", "tiny_full", "--data", str(protocol_set),
-                                       "--compare", "none"))
-    assert scene.labels == ["(c) UniqueSplat: tiny_full"] and scene.image_shape == (64, 64)
+    scene = view.scene_from_args(parse("--checkpoint", "study/tiny_full", "--data",
+                                       str(protocol_set), "--compare", "none"))
+    assert scene.labels == ["(c) UniqueSplat: study/tiny_full"] and scene.image_shape == (64, 64)
     images = scene.images.permute(0, 2, 3, 1).numpy()
     for i, (c2w, k) in enumerate(scene.frustums()):
         wxyz, position = view.viser_from_c2w(c2w)
@@ -246,8 +246,8 @@ def test_a_dataset_scene_seen_from_its_context_cameras_shows_their_images(protoc
 # ---- Arguments ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("argv, message", [
-    ([], "give --checkpoint NAME_OR_FILE (e.g. tiny_full) with --data ROOT or --images"),
-    (["--checkpoint", "tiny_full"], "give --data (a dataset in the chunk format) or --images"),
+    ([], "give --data (a dataset in the chunk format) or --images"),
+    (["--checkpoint", "full-64"], "give --data (a dataset in the chunk format) or --images"),
     (["--checkpoint", "tiny_full", "--data", "d", "--images", "a", "b"], "one of them"),
     (["--ply", "g.ply", "--checkpoint", "tiny_full"], "give --ply FILE alone"),
     # without --cameras the photos are posed first (usplat pose): named when missing
@@ -268,12 +268,13 @@ def test_without_viser_the_error_names_the_extra(monkeypatch, capsys):
 
 
 def test_the_shipped_full_model_is_compared_with_the_shipped_baseline():
-    assert view.compare_checkpoint(parse("--checkpoint", "tiny_full")) == "tiny_baseline"
-    assert view.compare_checkpoint(parse("--checkpoint", "tiny_baseline")) is None
-    assert view.compare_checkpoint(parse("--checkpoint", "tiny_full", "--compare",
+    assert view.compare_checkpoint(parse("--checkpoint", "full-64")) == "baseline-64"
+    assert view.compare_checkpoint(parse("--checkpoint", "baseline-64")) is None
+    assert view.compare_checkpoint(parse("--checkpoint", "study/tiny_full")) is None
+    assert view.compare_checkpoint(parse("--checkpoint", "full-64", "--compare",
                                          "none")) is None
-    assert view.compare_checkpoint(parse("--checkpoint", "tiny_baseline", "--compare",
-                                         "tiny_agnostic")) == "tiny_agnostic"
+    assert view.compare_checkpoint(parse("--checkpoint", "baseline-64", "--compare",
+                                         "study/tiny_agnostic")) == "study/tiny_agnostic"
 
 
 # ---- In a real browser -------------------------------------------------------------------
@@ -459,7 +460,7 @@ def test_the_viewer_in_a_real_browser_renders_and_follows_a_mouse_drag(truth, ch
         state["gui"]["model"].value = viewer.scene.labels[1]
         wait_for(lambda: viewer.history[client][-1].label == viewer.scene.labels[1], 30,
                  "a view by the other model")
-        wait_for(lambda: "(a) primary network: tiny_baseline" in page.text(), 10,
+        wait_for(lambda: "(a) primary network: baseline-64" in page.text(), 10,
                  "the readout of the other model")
     finally:
         viewer.stop()

@@ -19,7 +19,7 @@ from usplat_dr.model.auto_budget import (
 )
 from usplat_dr.model.budget import GaussianBudget
 from usplat_dr.render.prune import PruneSettings
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.loader import load
 
 #: The proxy loss taken as it is: a line of slope 1 through 0 with no margin at every budget.
 IDENTITY = Calibration("dither", tuple((k, 0.0, 1.0, 0.0) for k in AUTO_KEEPS), 0.9, "none")

@@ -71,7 +71,7 @@ def test_a_model_against_itself_reads_zero_at_the_small_size(tmp_path, protocol_
     # in float64, PSNR = -10 log10(MSE) per target, averaged over targets
     from usplat_dr.data.types import model_inputs
     from usplat_dr.evaluation import held_out_scenes, load_example
-    from usplat_dr.training.checkpoints import load
+    from usplat_dr.training.loader import load
     big, index, scenes = held_out_scenes(protocol_set, "standard", 1, size=128)
     small = {**big, "image_shape": [64, 64]}
     b64, b128 = load_example(small, index, scenes[0]), load_example(big, index, scenes[0])
@@ -109,7 +109,7 @@ def test_gaussians_rendered_at_another_size(tmp_path, protocol_set):
     # the small model's Gaussians drawn at the large size: at its own size they are its render
     # bit for bit (the same Gaussians, the same rasteriser), and --rendered-up scores them
     from usplat_dr.evaluation import held_out_scenes, load_example
-    from usplat_dr.training.checkpoints import load
+    from usplat_dr.training.loader import load
     big, index, scenes = held_out_scenes(protocol_set, "standard", 1, size=32)
     model = load("tiny_baseline").eval()
     one = load_example({**big, "image_shape": [16, 16]}, index, scenes[0])

@@ -16,11 +16,11 @@ from usplat_dr.training import checkpoints
 from usplat_dr.training.checkpoints import (
     export_weights,
     init_from_checkpoint,
-    load,
     load_model,
     read_usplat_checkpoint,
     shipped_checkpoints,
 )
+from usplat_dr.training.loader import load
 
 
 @pytest.fixture(autouse=True)
@@ -52,7 +52,7 @@ def test_an_addon_holds_only_what_differs_and_loads_as_the_whole_model(budget_ch
     addon = export_weights(path, tmp_path / "tiny_full_budget.pt", base="tiny_full")
     stored = torch.load(addon, map_location="cpu", weights_only=True)
     assert stored["model"] and all(k.startswith("importance.") for k in stored["model"])
-    base_file = shipped_checkpoints()["tiny_full"]
+    base_file = shipped_checkpoints()["study/tiny_full"]
     assert stored["base"] == {"file": "tiny_full.pt", "sha256": hashlib.sha256(
         base_file.read_bytes()).hexdigest()}
     # kilobytes beside a copy of the model (the size budget of the shipped weights)
@@ -76,11 +76,11 @@ def test_the_base_beside_the_addon_comes_first_and_must_be_the_same_file(
     addon = export_weights(path, folder / "tiny_full_budget.pt", base="tiny_full")
     complete = read_usplat_checkpoint(addon)["model"]  # the base from the shipped ones
     beside = folder / "tiny_full.pt"
-    beside.write_bytes(shipped_checkpoints()["tiny_baseline"].read_bytes())  # another file
+    beside.write_bytes(shipped_checkpoints()["baseline-64"].read_bytes())  # another file
     with pytest.raises(ValueError, match="another file"):
         read_usplat_checkpoint(addon)
     # with no shipped checkpoints at all, the right file beside it is enough
-    shutil.copyfile(shipped_checkpoints()["tiny_full"], beside)
+    shutil.copyfile(shipped_checkpoints()["study/tiny_full"], beside)
     monkeypatch.setattr(checkpoints, "CHECKPOINTS", tmp_path / "none")
     again = read_usplat_checkpoint(addon)["model"]
     assert again.keys() == complete.keys()

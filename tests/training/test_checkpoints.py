@@ -22,7 +22,6 @@ from usplat_dr.training.checkpoints import (
     BASE,
     BUDGETED,
     SHIPPED,
-    SIZED_NAME,
     depth_range_warning,
     load_model,
     registered_verdict,
@@ -48,7 +47,7 @@ def _quiet_resnet(caplog):
 
 def test_manifest_lists_the_required_models_within_budget():
     names = {e["name"] for e in MANIFEST}
-    assert {"tiny_baseline", "tiny_full"} <= names
+    assert {"baseline-64", "full-64"} <= names
     assert all(KEYS <= set(e) for e in MANIFEST), [KEYS - set(e) for e in MANIFEST]
     assert sum((ROOT / e["file"]).stat().st_size for e in MANIFEST) <= MAX_BYTES
     by = {e["name"]: e for e in MANIFEST}
@@ -59,10 +58,10 @@ def test_manifest_lists_the_required_models_within_budget():
             assert Path(e["init_from"]).name == by[e["base"]]["file"], e["name"]
         elif e["variant"] != "baseline" or e["name"].endswith("_continued"):
             # (b), (c) and the control: fine-tuned by the paper's protocol from the shipped (a)
-            # of their size (tiny_full_128 from tiny_baseline_128)
-            sized = SIZED_NAME.match(e["name"])
-            a_name = f"tiny_baseline_{sized['size']}" if sized else "tiny_baseline"
-            assert Path(e["init_from"]).name == by[a_name]["file"], e["name"]
+            # of their size (study/tiny_full_128 from study/tiny_baseline_128)
+            size = min(e["training_shape"])
+            a_file = "tiny_baseline.pt" if size == 64 else f"tiny_baseline_{size}.pt"
+            assert a_file in files and Path(e["init_from"]).name == a_file, e["name"]
         elif e.get("init_from_commit"):
             # a staged (a) started from an earlier version of a file: named by commit and hash
             assert re.fullmatch(r"[0-9a-f]{7,40}", e["init_from_commit"]), e["name"]
@@ -81,7 +80,7 @@ def test_the_shipped_depth_range_is_that_of_the_scene_kinds_they_trained_on():
     for name in shipped_checkpoints():
         assert training_depth_range(name) == expected, name
     # what render and view read: the loaded model carries it (one read of the file)
-    assert load_model(shipped_checkpoints()["tiny_baseline"])[0].trained_depth_range == expected
+    assert load_model(shipped_checkpoints()["baseline-64"])[0].trained_depth_range == expected
     # a room in the synthetic kinds' units passes; the same room in millimetres does not
     assert depth_range_warning(0.2, 20.0, expected) is None
     assert "far outside" in depth_range_warning(200.0, 20000.0, expected)

@@ -1,19 +1,22 @@
 """``usplat_dr.load``: one loader for every checkpoint users have (a shipped name, a training
 checkpoint, an official MVSplat file), behind every command that takes ``--checkpoint``."""
 
+import logging
+
 import pytest
 import torch
 
 import usplat_dr
 from usplat_dr.model import PrimaryNetwork, UniqueSplat
+from usplat_dr.training import registry
 from usplat_dr.training.checkpoints import (
     is_mvsplat_checkpoint,
-    load,
     load_model,
     resolve_checkpoint,
     shipped_checkpoints,
     training_image_shape,
 )
+from usplat_dr.training.loader import load
 
 
 def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
@@ -22,13 +25,23 @@ def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
 
 
 def test_a_shipped_name_and_its_file_load_the_same_model():
-    path = shipped_checkpoints()["tiny_full"]
-    by_name = usplat_dr.load("tiny_full")
+    path = shipped_checkpoints()["study/tiny_full"]
+    by_name = usplat_dr.load("study/tiny_full")
     assert by_name.cfg.variant == "full" and not by_name.training
     assert same_weights(by_name, load(path))
     assert same_weights(by_name, load_model(path)[0])
-    assert resolve_checkpoint("tiny_full.pt") == path
-    assert training_image_shape("tiny_full") == (64, 64)
+    assert resolve_checkpoint("study/tiny_full.pt") == path
+    assert training_image_shape("study/tiny_full") == (64, 64)
+
+
+def test_an_old_name_loads_its_file_with_a_line_naming_the_new_one(caplog):
+    registry._told.discard("tiny_full_beyond")
+    with caplog.at_level(logging.WARNING, logger="usplat_dr.training.registry"):
+        old = usplat_dr.load("tiny_full_beyond")
+    assert "tiny_full_beyond is now full-64 (the same file)" in caplog.text
+    assert same_weights(old, usplat_dr.load("full-64"))
+    # no name: the shipped (c) for 64x64, whose branch acts
+    assert same_weights(usplat_dr.load(), old)
 
 
 def test_an_mvsplat_lightning_file_loads_as_the_paper_preset_baseline(tmp_path):
@@ -46,7 +59,8 @@ def test_an_mvsplat_lightning_file_loads_as_the_paper_preset_baseline(tmp_path):
 
 
 def test_a_name_that_is_no_file_lists_the_shipped_ones(tmp_path):
-    with pytest.raises(FileNotFoundError, match="shipped: tiny_agnostic, tiny_baseline"):
+    with pytest.raises(FileNotFoundError, match=r"shipped models \(usplat models; --all for "
+                       r"study/ ones\): full-64, baseline-64"):
         load("tiny_fulll")
     with pytest.raises(FileNotFoundError, match="missing.ckpt' does not exist"):
         load(tmp_path / "missing.ckpt")

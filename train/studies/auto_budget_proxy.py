@@ -38,7 +38,8 @@ from usplat_dr.io import atomic_open, write_json
 from usplat_dr.model.auto_budget import AutoBudget, Calibration, choose_keep
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.uniquesplat import StudyHooks
-from usplat_dr.training.checkpoints import CHECKPOINTS, load, training_image_shape
+from usplat_dr.training.checkpoints import CHECKPOINTS, training_image_shape
+from usplat_dr.training.loader import load
 
 KEEPS = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7)
 TOLERANCES = (0.1, 0.2, 0.3, 0.5, 1.0)

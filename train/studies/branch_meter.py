@@ -32,7 +32,7 @@ from usplat_dr.data.dataset import dataset_from_section
 from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.view_specificity import read_batch, summarise
 from usplat_dr.io import atomic_open, write_json
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.loader import load
 
 
 def checkpoint_path(name: str) -> str:

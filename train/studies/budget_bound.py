@@ -39,7 +39,7 @@ from usplat_dr.io import atomic_open, write_json
 from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.types import Gaussians
 from usplat_dr.model.uniquesplat import StudyHooks
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.loader import load
 from usplat_dr.training.per_scene import FitCfg, views_from_record
 
 #: The budgets of the study (fractions of a target's Gaussians), largest first.

@@ -48,7 +48,7 @@ from usplat_dr.model.budget import (
 )
 from usplat_dr.model.types import Gaussians
 from usplat_dr.render.prune import moment_match
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.loader import load
 
 KEEPS = (0.5, 0.3, 0.1)
 FIELDS = ("scene", "chi2", "keep", "merged_fraction", "psnr_all", "psnr_merged", "psnr_dither",

@@ -31,7 +31,7 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation.metrics import psnr
 from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.io import atomic_open, write_json
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.loader import load
 
 
 def _percentiles(plo: float, phi: float, mlo: float, mhi: float):

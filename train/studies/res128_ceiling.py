@@ -37,7 +37,7 @@ import usplat_dr  # noqa: F401  (libLLVM first)
 from usplat_dr.evaluation import held_out_scenes
 from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.io import atomic_open, write_json
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.loader import load
 
 _spec = importlib.util.spec_from_file_location(
     "res128_eval", Path(__file__).with_name("res128_eval.py"))

@@ -37,7 +37,7 @@ from usplat_dr.evaluation import depth_metrics, held_out_scenes, nan_mean
 from usplat_dr.evaluation.metrics import psnr, ssim
 from usplat_dr.evaluation.verdict import t_interval
 from usplat_dr.io import atomic_open, write_json
-from usplat_dr.training.checkpoints import load
+from usplat_dr.training.loader import load
 
 #: The registered success test: PSNR at least this much above the upsampled 64x64 renders
 #: (and SSIM above theirs).

@@ -15,10 +15,11 @@ DEVICE_HELP = ("cpu: torch and Dr.Jit's LLVM backend on the CPU; cuda: a GPU (Dr
 DATASET_HELP = "the data's kind (its cameras' conventions and default near/far)"
 
 #: ``--checkpoint``'s help, the same for every command that takes one (one loader behind them:
-#: ``usplat_dr.training.checkpoints.load``).
-CHECKPOINT_HELP = ("a shipped checkpoint's name (tiny_full, tiny_baseline, ...: "
-                   "checkpoints/manifest.json), a file usplat train wrote "
-                   "(OUTPUT_DIR/checkpoints/last.ckpt) or an official MVSplat .ckpt")
+#: ``usplat_dr.training.loader.load``).
+CHECKPOINT_HELP = ("a shipped model's name (full-64, baseline-64: usplat models; study ones: "
+                   "usplat models --all), a file usplat train wrote "
+                   "(OUTPUT_DIR/checkpoints/last.ckpt) or an official MVSplat .ckpt (default: "
+                   "the shipped (c) for the size asked, said)")
 
 
 def at_least(minimum: int):

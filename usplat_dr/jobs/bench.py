@@ -59,8 +59,9 @@ from usplat_dr.model.budget import RANKINGS, GaussianBudget
 from usplat_dr.model.uniquesplat import DEFAULT_INFERENCE_PRUNE, PRESETS, StudyHooks
 from usplat_dr.render.prune import PRUNES
 from usplat_dr.training import train
-from usplat_dr.training.checkpoints import BASE, load, load_models, shipped_checkpoints
+from usplat_dr.training.checkpoints import BASE, load_models, shipped_checkpoints
 from usplat_dr.training.distributed import set_threads
+from usplat_dr.training.loader import load
 from usplat_dr.training.recipes import RECIPES, ensure_data, training_config
 
 log = logging.getLogger(__name__)

@@ -24,24 +24,26 @@ from usplat_dr.jobs.render import (
     add_near_far_arguments,
     add_trust_argument,
     dataset_section,
+    fit_checkpoint,
 )
 from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.render.prune import PruneSettings
-from usplat_dr.training.checkpoints import checkpoint_provenance, load
+from usplat_dr.training.checkpoints import checkpoint_provenance
+from usplat_dr.training.loader import load
 
 DATASETS = ["synth", "re10k", "acid", "dtu"]
 log = logging.getLogger(__name__)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help=CHECKPOINT_HELP)
+    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
     p.add_argument("--data", required=True, help="dataset root (chunk format)")
     p.add_argument("--dataset", default="synth", choices=DATASETS,
                    help=DATASET_HELP)
     p.add_argument("--index", nargs="+", metavar="SPLIT=PATH",
                    help="evaluation index JSON(s); default: the synthetic set's own splits")
     p.add_argument("--splits", nargs="+", help="synthetic splits to evaluate (default: all)")
-    add_image_shape_argument(p, fits=False)
+    add_image_shape_argument(p)
     add_near_far_arguments(p, "each scene's recorded range")
     add_trust_argument(p)
     p.add_argument("--prune", action="store_true",
@@ -101,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"--data: no evaluation_index_*.json with scenes in "
                                     f"{args.data}; pass --index NAME=PATH (e.g. "
                                     f"standard=assets/evaluation_index_re10k.json)")
+    fit_checkpoint(args)
     lpips = None
     if args.lpips_vgg or args.lpips_lin:
         lpips = LPIPS.from_files(args.lpips_vgg, args.lpips_lin).to(args.device)

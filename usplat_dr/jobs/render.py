@@ -44,13 +44,9 @@ from usplat_dr.jobs.arguments import (
 )
 from usplat_dr.model.ply import write_ply
 from usplat_dr.model.predict import Prediction
-from usplat_dr.training.checkpoints import (
-    depth_range_warning,
-    fitting_checkpoint,
-    load,
-    size_family,
-    training_image_shape,
-)
+from usplat_dr.training.checkpoints import depth_range_warning, training_image_shape
+from usplat_dr.training.loader import load
+from usplat_dr.training.registry import default_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +55,7 @@ DATASETS = ["synth", "re10k", "acid", "dtu"]
 
 def add_example_arguments(p: argparse.ArgumentParser, data_required: bool = True) -> None:
     """The arguments naming a model and one evaluation example (``render``, ``export-ply``)."""
-    p.add_argument("--checkpoint", required=True, help=CHECKPOINT_HELP)
+    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
     p.add_argument("--data", required=data_required, help="dataset root (chunk format)")
     p.add_argument("--dataset", default="synth", choices=DATASETS,
                    help=DATASET_HELP)
@@ -80,10 +76,10 @@ def add_trust_argument(p: argparse.ArgumentParser) -> None:
 
 
 def add_image_shape_argument(p: argparse.ArgumentParser, fits: bool = True) -> None:
-    """``--image-shape``; ``fits``: the command fits a shipped name to the size first
-    (``fit_checkpoint``), and its help says so."""
-    fitted = ("; a shipped name with siblings at other sizes is first fitted to --data's "
-              "stored size, or to your own images" if fits else "")
+    """``--image-shape``; ``fits``: without --checkpoint the command's default model is the
+    one for that size (``fit_checkpoint``), and its help says so."""
+    fitted = ("; without --checkpoint, the shipped (c) trained nearest it, or nearest --data's "
+              "stored size, or the largest for your own images" if fits else "")
     p.add_argument("--image-shape", type=positive_int, nargs=2, metavar=("H", "W"),
                    help="the size images are cropped and resized to (default: the size the "
                    f"checkpoint was trained at{fitted})")
@@ -97,33 +93,25 @@ def image_shape(args: argparse.Namespace) -> tuple[int, int]:
     return training_image_shape(args.checkpoint, args.trust_checkpoint) or (256, 256)
 
 
-def fit_checkpoint(args: argparse.Namespace, checkpoint: str | None = None) -> str:
-    """The shipped model to use for ``checkpoint`` (default ``--checkpoint``; which becomes it):
-    its sibling trained at the size nearest ``--image-shape``; without one, nearest the size
-    ``--data``'s images are stored at, or with your own ``--images`` the largest
-    (``fitting_checkpoint``); logged when it is another. A dataset whose stored size cannot be
-    read keeps the named model, at its own size."""
-    name = args.checkpoint if checkpoint is None else checkpoint
-    family = None
+def fit_checkpoint(args: argparse.Namespace) -> str:
+    """``--checkpoint`` as given (a name never changes size: ``full-64`` is that model at any
+    size); without one, the shipped (c) for the request, which ``args.checkpoint`` becomes
+    (``default_checkpoint``): the one trained nearest ``--image-shape``, else nearest the size
+    ``--data``'s images are stored at, else with your own ``--images`` the largest; said."""
+    if args.checkpoint is not None:
+        return args.checkpoint
     if args.image_shape is not None:
         shape = tuple(args.image_shape)
     elif getattr(args, "images", None) is not None:
         shape = None  # your own photographs: larger than any model's size
     else:
-        # the data's size is read only where it can choose (a shipped name with siblings)
         data = getattr(args, "data", None)
-        if data is None:
-            return name
-        family = size_family(str(name).removesuffix(".pt"))
-        shape = stored_image_shape(data) if len(family) >= 2 else None
+        shape = stored_image_shape(data) if data is not None else None
         if shape is None:
-            return name
-    chosen, note = fitting_checkpoint(name, shape, family=family)
-    if note is not None:
-        log.info("%s", note)
-    if checkpoint is None:
-        args.checkpoint = chosen
-    return chosen
+            shape = (64, 64) if data is not None else None
+    args.checkpoint, line = default_checkpoint(shape)
+    log.info("%s", line)
+    return args.checkpoint
 
 
 def one_example(args: argparse.Namespace) -> tuple:

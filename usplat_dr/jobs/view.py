@@ -43,19 +43,14 @@ from usplat_dr.jobs.render import (
     add_trust_argument,
     check_own_views,
     fit_checkpoint,
-    image_shape,
     one_example,
     own_views,
 )
 from usplat_dr.model.ply import read_ply
 from usplat_dr.model.uniquesplat import VARIANTS
 from usplat_dr.render import RasterSettings, rasterize
-from usplat_dr.training.checkpoints import (
-    fitting_checkpoint,
-    load,
-    resolve_checkpoint,
-    shipped_checkpoints,
-)
+from usplat_dr.training.loader import load
+from usplat_dr.training.registry import canonical_name, shipped_models
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +59,6 @@ log = logging.getLogger(__name__)
 CHANNELS = ("colour", "depth", "opacity")
 #: Where opacity is below this, the depth view is black (depth there is ~0 and means nothing).
 DEPTH_ALPHA = 0.05
-#: ``--compare``'s default for the shipped (c): the shipped (a), trained alike.
-DEFAULT_COMPARE = {"tiny_full": "tiny_baseline"}
 #: A PLY has no image shape of its own.
 PLY_IMAGE_SHAPE = (256, 256)
 VIEWER_HINT = ("usplat view needs the viser package (the 'view' extra): pip install -c "
@@ -510,9 +503,9 @@ class Viewer:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
     p.add_argument("--compare", metavar="CHECKPOINT",
-                   help="a second model to switch to in the page, e.g. tiny_baseline beside "
-                   "tiny_full; 'none' for one model (default: tiny_baseline with --checkpoint "
-                   "tiny_full, else none)")
+                   help="a second model to switch to in the page, e.g. baseline-64 beside "
+                   "full-64; 'none' for one model (default: with a shipped (c), the shipped "
+                   "(a) trained nearest its size, else none)")
     data = p.add_argument_group("context views from a dataset")
     data.add_argument("--data", help="dataset root (chunk format)")
     data.add_argument("--dataset", default="synth", choices=DATASETS,
@@ -533,22 +526,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def compare_checkpoint(args: argparse.Namespace) -> str | None:
-    """``--compare``, or its default: tiny_baseline for the shipped tiny_full."""
+    """``--compare``, or its default: with a shipped user (c) (``--checkpoint``'s, after
+    ``fit_checkpoint``), the shipped user (a) trained nearest its size; else none."""
     if args.compare is not None:
         return None if args.compare.lower() == "none" else args.compare
-    try:
-        shipped = shipped_checkpoints()
-    except FileNotFoundError:  # an install without the shipped checkpoints: nothing to pair
+    models = shipped_models()
+    name = canonical_name(args.checkpoint) if not Path(args.checkpoint).is_file() else None
+    if name is None or models[name].kind != "user" or models[name].variant != "full":
         return None
-    for name, other in DEFAULT_COMPARE.items():
-        if name in shipped and resolve_checkpoint(args.checkpoint) == shipped[name]:
-            return other if other in shipped else None
-    return None
+    size = models[name].size or 64
+    baselines = [m for m in models.values() if m.kind == "user" and m.variant == "baseline"
+                 and m.size]
+    if not baselines:
+        return None
+    return min(baselines, key=lambda m: (abs(math.log2(m.size / size)), -m.size)).name
 
 
 def label(model, checkpoint: str) -> str:
-    """"(c) UniqueSplat: tiny_full": the model's variant and where it came from."""
-    return f"{VARIANTS[model.cfg.variant]}: {Path(checkpoint).name}"
+    """"(c) UniqueSplat: full-64": the model's variant and where it came from (a shipped
+    model's name, or a file's name)."""
+    shipped = not Path(checkpoint).is_file() and canonical_name(checkpoint) is not None
+    return f"{VARIANTS[model.cfg.variant]}: {checkpoint if shipped else Path(checkpoint).name}"
 
 
 def check_arguments(args: argparse.Namespace) -> None:
@@ -557,12 +555,10 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError(f"--port must be in 0..65535, got {args.port}")
     if args.ply is not None:
         if args.checkpoint or args.data or args.images:
-            raise ValueError("give --ply FILE alone, or --checkpoint with --data or --images "
-                             "(a PLY is drawn without a model)")
+            raise ValueError("give --ply FILE alone, or --data or --images (with a model: "
+                             "--checkpoint, default the shipped (c)); a PLY is drawn without "
+                             "a model")
         return
-    if args.checkpoint is None:
-        raise ValueError("give --checkpoint NAME_OR_FILE (e.g. tiny_full) with --data ROOT or "
-                         "--images A B --cameras FILE, or --ply FILE")
     if (args.data is None) == (args.images is None):
         raise ValueError("give --data (a dataset in the chunk format) or --images A B "
                          "--cameras FILE (your own images), one of them")
@@ -576,12 +572,8 @@ def scene_from_args(args: argparse.Namespace):
     if args.ply is not None:
         return PlyScene(read_ply(args.ply), tuple(args.image_shape or PLY_IMAGE_SHAPE),
                         f"PLY: {Path(args.ply).name}")
-    compare = compare_checkpoint(args)  # paired by the name asked for, then both fitted
     fit_checkpoint(args)
-    if compare is not None:  # it renders the same images: fitted to their size
-        compare, note = fitting_checkpoint(compare, image_shape(args))
-        if note is not None:
-            log.info("%s", note)
+    compare = compare_checkpoint(args)
     if args.data is not None:
         model, batch = one_example(args)
         inputs = model_inputs(batch, torch.device(args.device))

@@ -273,7 +273,7 @@ class UniqueSplat(nn.Module):
         #: Renders the predicted Gaussians (MVSplat's SH basis): ``render_targets``.
         self.decoder = DecoderSplatting()
         #: [min near, max near, min far, max far] of the scenes the loaded checkpoint trained
-        #: on (``usplat_dr.training.checkpoints.load`` sets it), ``None`` when unknown.
+        #: on (``usplat_dr.training.loader.load`` sets it), ``None`` when unknown.
         self.trained_depth_range: list[float] | None = None
         #: Per-target pruning before rasterisation when not training (``forward``'s
         #: ``prune="auto"``); ``None`` renders every Gaussian. See ``usplat_dr.render.prune``.

@@ -8,9 +8,7 @@ import contextlib
 import dataclasses
 import json
 import logging
-import math
 import os
-import re
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,11 @@ from usplat_dr.io.user_files import sha256
 from usplat_dr.model import UniqueSplat, UniqueSplatCfg
 from usplat_dr.model.auto_budget import Calibration
 from usplat_dr.model.checkpoint import check_state_dict
+from usplat_dr.training.registry import (  # noqa: F401  (the loader's names, here too)
+    CHECKPOINTS,
+    resolve_checkpoint,
+    shipped_checkpoints,
+)
 
 #: How a user opts in to full unpickling (named in the refusal's message).
 TRUST_HINT = "--trust-checkpoint (usplat eval/render/export-ply/train) or trust=True"
@@ -31,23 +34,54 @@ log = logging.getLogger(__name__)
 
 
 def read_usplat_checkpoint(checkpoint: str | os.PathLike, map_location="cpu",
-                           trust: bool = False) -> dict:
+                           trust: bool = False, cache: bool = True) -> dict:
     """A usplat checkpoint file as a dict, loaded with ``torch.load(weights_only=True)``:
     ours hold tensors and plain data only. ``trust=True`` allows full unpickling (files
-    written before RNG states were stored as plain data need it; it can run code)."""
+    written before RNG states were stored as plain data need it; it can run code). The last
+    few files read are kept (``READ_CACHE``, keyed by the file's path, size and modification
+    time): a command that asks a file its size, its depth range and then its model reads it
+    once. Each call returns its own top-level dict; the tensors are shared, read-only by
+    convention (``load_state_dict`` copies them). ``cache=False``: read and keep nothing (a
+    training state, read once to resume)."""
     path = Path(checkpoint)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist (usplat train writes "
                                 f"OUTPUT_DIR/checkpoints/last.ckpt; shipped ones are in "
                                 f"checkpoints/)")
+    state = _load(path, map_location, trust, cache)
+    if "base" in state:
+        state = _on_base(path, state, map_location, trust, cache)
+    return state
+
+
+#: How many checkpoint files ``read_usplat_checkpoint`` keeps (a command reads one or two
+#: models, an add-on its base beside it).
+READ_CACHE = 3
+_READ: dict[tuple, dict] = {}
+_SHA256: dict[tuple, str] = {}
+
+
+def _stat_key(path: Path, *more) -> tuple:
+    stat = path.stat()
+    return (str(path.resolve()), stat.st_size, stat.st_mtime_ns, *more)
+
+
+def _load(path: Path, map_location, trust: bool, cache: bool = True) -> dict:
+    """One file's dict as ``torch.load`` gives it (an add-on not yet completed), kept in
+    ``_READ`` unless ``cache=False``; a copy of its top level each call."""
+    key = _stat_key(path, str(map_location), trust)
+    if cache and key in _READ:
+        return dict(_READ[key])
     state = load_torch_file(path, "checkpoint", map_location, trust=trust,
                             trust_hint=TRUST_HINT)
     if not isinstance(state, dict):
         raise ValueError(f"checkpoint {str(path)!r} holds a {type(state).__name__}, not a "
                          f"usplat checkpoint (a dict with 'model' and 'model_config')")
-    if "base" in state:
-        state = _on_base(path, state, map_location, trust)
-    return state
+    if cache:
+        _READ[key] = state
+        while len(_READ) > READ_CACHE:
+            _READ.pop(next(iter(_READ)))
+    return dict(state)
 
 
 #: Bytes a checkpoint file may hold (the paper preset's MVSplat checkpoint is about 150 MB).
@@ -55,10 +89,14 @@ MAX_CHECKPOINT_BYTES = 4 * 2**30
 
 
 def _file_sha256(path: Path) -> str:
-    return sha256(path, "checkpoint", MAX_CHECKPOINT_BYTES)
+    """A checkpoint file's sha256, computed once per file version in a process."""
+    key = _stat_key(path)
+    if key not in _SHA256:
+        _SHA256[key] = sha256(path, "checkpoint", MAX_CHECKPOINT_BYTES)
+    return _SHA256[key]
 
 
-def _on_base(path: Path, state: dict, map_location, trust: bool) -> dict:
+def _on_base(path: Path, state: dict, map_location, trust: bool, cache: bool = True) -> dict:
     """An add-on checkpoint (``export_weights(..., base=)``) completed: it holds only the
     weights that differ from a base checkpoint's (the budget stage's importance head on a
     shipped model: kilobytes instead of a copy of the model), and names the base by file name
@@ -81,9 +119,8 @@ def _on_base(path: Path, state: dict, map_location, trust: bool) -> dict:
         raise ValueError(f"checkpoint {str(path)!r} was made on a {name} with sha256 "
                          f"{base['sha256'][:12]}..., and {found} is another file (a newer "
                          f"release?): use the {name} it was made on")
-    base_state = load_torch_file(found, "checkpoint", map_location, trust=trust,
-                                 trust_hint=TRUST_HINT)
-    if not isinstance(base_state, dict) or "base" in base_state:
+    base_state = _load(found, map_location, trust, cache)
+    if "base" in base_state:
         raise ValueError(f"checkpoint {str(path)!r}: its base {found} is not a complete usplat "
                          f"checkpoint (an add-on's base holds every weight)")
     own, inherited = state.get("model"), base_state.get("model")
@@ -486,32 +523,26 @@ def export_weights(checkpoint: str | os.PathLike, out: str | os.PathLike, half: 
 
 # ---- The shipped checkpoints ----
 
-#: Where the shipped checkpoints are: package data in a wheel install (usplat_dr/checkpoints,
-#: pyproject.toml maps the repository's checkpoints/ there), else the repository's
-#: checkpoints/ folder (a source checkout or an editable install).
-CHECKPOINTS = next((p for p in (Path(__file__).parents[1] / "checkpoints",
-                                Path(__file__).parents[2] / "checkpoints") if p.is_dir()),
-                   Path(__file__).parents[2] / "checkpoints")
 #: The shipped checkpoints ``usplat demo`` and ``usplat bench`` read (names in
-#: ``CHECKPOINTS/manifest.json``, made by train/ship_checkpoint.py): the trained primary
-#: network, and per variant the model fine-tuned from it for the same steps (for (a): trained
-#: on, the control the others are paired with).
-BASE = "tiny_baseline"
-SHIPPED = {"baseline": "tiny_baseline_continued", "agnostic": "tiny_agnostic",
-           "full": "tiny_full"}
+#: ``CHECKPOINTS/manifest.json``, made by train/ship_checkpoint.py; usplat_dr.training.registry):
+#: the trained primary network, and per variant the model fine-tuned from it for the same
+#: steps (for (a): trained on, the control the others are paired with).
+BASE = "baseline-64"
+SHIPPED = {"baseline": "study/tiny_baseline_continued", "agnostic": "study/tiny_agnostic",
+           "full": "study/tiny_full"}
 #: The budget stage on SHIPPED's (a) and (c) (docs/model.md, "A Gaussian budget chosen at
 #: inference"): add-ons holding the importance head, the rest their base's bit for bit (so
 #: unbudgeted they render exactly as the SHIPPED ones); ``usplat demo`` charts their budgets.
-BUDGETED = {"baseline": "tiny_baseline_budget", "full": "tiny_full_budget"}
+BUDGETED = {"baseline": "study/tiny_baseline_budget", "full": "study/tiny_full_budget"}
 #: The first (c) whose view-specific branch is live (its Delta W differs between target views:
 #: E_H reading the primary network's features, trained alone at 32 scenes a step on a GPU; an
-#: add-on on tiny_full). SHIPPED's (c) stays the paper's form; the demo shows this one's meter.
-LIVE = "tiny_full_live"
+#: add-on on study/tiny_full). SHIPPED's (c) stays the paper's form; the demo shows its meter.
+LIVE = "study/tiny_full_live"
 #: The same branch trained with targets beyond the context views as well as between them
 #: (``dataset.view_sampler.max_distance_beyond_context_views=4``; 300 steps on a CPU): its
-#: Delta W differs between targets most where they leave the context pair (extrapolation); an
-#: add-on on tiny_full. The demo shows its meter on the standard and extrapolation splits.
-BEYOND = "tiny_full_beyond"
+#: Delta W differs between targets most where they leave the context pair (extrapolation); the
+#: users' (c) at 64x64. The demo shows its meter on the standard and extrapolation splits.
+BEYOND = "full-64"
 
 
 def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
@@ -521,127 +552,9 @@ def registered_verdict(root: Path = CHECKPOINTS) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def shipped_checkpoints(root: Path = CHECKPOINTS) -> dict[str, Path]:
-    """``{manifest name: file}`` of the shipped checkpoints, checked against the manifest."""
-    manifest = root / "manifest.json"
-    if not manifest.is_file():
-        raise FileNotFoundError(f"no {manifest}: the demo starts from the shipped checkpoints "
-                                f"(train them with train/ship_checkpoint.py; see README)")
-    entries = json.loads(manifest.read_text())
-    return {e["name"]: root / e["file"] for e in entries}
-
-
-def resolve_checkpoint(checkpoint: str | os.PathLike, root: Path = CHECKPOINTS) -> Path:
-    """The file ``checkpoint`` names: a path, or a shipped checkpoint's name (``tiny_full``,
-    with or without ``.pt``). Neither is a ``FileNotFoundError`` listing the shipped names."""
-    path = Path(checkpoint)
-    if path.is_file():
-        return path
-    shipped = shipped_checkpoints(root) if (root / "manifest.json").is_file() else {}
-    names = ", ".join(sorted(shipped)) or "none installed"
-    if len(path.parts) == 1:  # a bare name
-        if path.name.removesuffix(".pt") in shipped:
-            return shipped[path.name.removesuffix(".pt")]
-        raise FileNotFoundError(f"checkpoint {str(checkpoint)!r} is neither a file nor a "
-                                f"shipped checkpoint's name (shipped: {names})")
-    raise FileNotFoundError(f"checkpoint {str(checkpoint)!r} does not exist (usplat train "
-                            f"writes OUTPUT_DIR/checkpoints/last.ckpt; MVSplat's files are "
-                            f"re10k.ckpt / acid.ckpt from its release; shipped ones load by "
-                            f"name: {names})")
-
-
-#: A shipped name ending in ``_<size>`` is its family's model trained at that size
-#: (``tiny_baseline_128``); the name without it is the family's first (``tiny_baseline``).
-SIZED_NAME = re.compile(r"^(?P<base>.+)_(?P<size>[0-9]+)$")
-
-
-def size_family(name: str, root: Path = CHECKPOINTS) -> dict[int, str]:
-    """``{training size (the shorter side): shipped name}`` of the shipped checkpoint ``name``
-    and its siblings trained at other sizes (``tiny_baseline`` and ``tiny_baseline_128``);
-    ``{}`` when ``name`` is not a shipped name."""
-    if not (root / "manifest.json").is_file():
-        return {}
-    shipped = shipped_checkpoints(root)
-    if name not in shipped:
-        return {}
-    m = SIZED_NAME.match(name)
-    base = m["base"] if m and m["base"] in shipped else name
-    members = [base] + [n for n in shipped
-                        if (mm := SIZED_NAME.match(n)) is not None and mm["base"] == base]
-    family = {}
-    for member in members:
-        try:
-            shape = training_image_shape(shipped[member])
-        except (OSError, ValueError, RuntimeError) as e:  # a sibling that cannot be read
-            log.warning("leaving %s out of %s's sizes: %s", member, base, e)
-            continue
-        if shape is not None:
-            family.setdefault(min(shape), member)
-    return family
-
-
-def fitting_checkpoint(checkpoint: str | os.PathLike, image_shape: tuple[int, int] | None,
-                       root: Path = CHECKPOINTS, family: dict[int, str] | None = None
-                       ) -> tuple[str, str | None]:
-    """The shipped model of ``checkpoint``'s family (``size_family``) that fits a render of
-    ``image_shape``: the one trained nearest its shorter side (in octaves; the larger on a
-    tie), or with ``image_shape=None`` (a user's own photographs, larger than any) the largest;
-    and a line saying so where that is not ``checkpoint``, else ``None``. Files, names without
-    siblings and names that give a size themselves (``tiny_baseline_128``) come back as they
-    are. ``family``: ``size_family(checkpoint, root)`` where the caller has it already.
-
-    Examples:
-        >>> fitting_checkpoint("tiny_full", (64, 64))
-        ('tiny_full', None)
-    """
-    name = str(checkpoint).removesuffix(".pt")
-    if (Path(checkpoint).is_file() or len(Path(checkpoint).parts) != 1
-            or SIZED_NAME.match(name)):
-        return str(checkpoint), None
-    if family is None:
-        family = size_family(name, root)
-    if len(family) < 2:
-        return str(checkpoint), None
-    if image_shape is None:
-        size = max(family)
-    else:
-        target = min(image_shape)
-        size = min(family, key=lambda s: (abs(math.log2(s / target)), -s))
-    chosen = family[size]
-    if chosen == name:
-        return str(checkpoint), None
-    why = ("your own images" if image_shape is None
-           else f"{image_shape[0]}x{image_shape[1]}")
-    return chosen, (f"using {chosen} (trained at {size}x{size}) for {name}: the shipped size of "
-                    f"that model that fits {why}; name a file to use another")
-
-
 def is_mvsplat_checkpoint(state: dict) -> bool:
     """Whether a loaded checkpoint is MVSplat's (a Lightning file whose ``state_dict`` keys
     start with ``encoder.``, or such a bare state dict) rather than one of ours."""
     sd = state.get("state_dict", state)
     return ("model_config" not in state and isinstance(sd, dict) and bool(sd)
             and all(isinstance(k, str) and k.startswith("encoder.") for k in sd))
-
-
-def load(checkpoint: str | os.PathLike, device: torch.device | str = "cpu",
-         trust: bool = False) -> UniqueSplat:
-    """A ``UniqueSplat`` in evaluation mode from any checkpoint users have: a shipped one by
-    name (``usplat_dr.load("tiny_full")``; names in ``checkpoints/manifest.json``), a file
-    ``usplat train`` wrote, or an official MVSplat checkpoint (``re10k.ckpt``: the paper preset
-    (a), which renders what MVSplat renders). ``trust``: full unpickling, for files
-    ``torch.load(weights_only=True)`` refuses (MVSplat's Lightning files may need it; it can
-    run code: only for files you trust).
-
-    Examples:
-        >>> model = load("tiny_full")
-        >>> model.cfg.variant
-        'full'
-    """
-    path = resolve_checkpoint(checkpoint)
-    state = read_usplat_checkpoint(path, device, trust)
-    if is_mvsplat_checkpoint(state):
-        model = UniqueSplat.from_preset("paper", variant="baseline")
-        return model.load_mvsplat(state).to(device).eval()
-    return _built(path, state, device)[0]
-

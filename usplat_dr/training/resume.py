@@ -30,7 +30,7 @@ def resumable_state(path: Path, device, trust: bool) -> dict:
     # tensors and plain data only: weights_only=True (model.trust_checkpoint, ``trust``, for
     # a file written before the RNG states were plain data)
     try:
-        state = read_usplat_checkpoint(path, device, trust)
+        state = read_usplat_checkpoint(path, device, trust, cache=False)
     except UntrustedCheckpointError:
         raise  # its message names the opt-in
     except ValueError as e:  # truncated, not a torch file, not a dict
