@@ -4,6 +4,7 @@ that cannot see the repository; then the report, the CLI's video and PLY export 
 fine-tuned model, and ``usplat bench`` reusing its runs."""
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -63,8 +64,8 @@ def wheel_demo(tmp_path_factory) -> Path:
 def test_demo_quick_end_to_end(wheel_demo):
     tmp_path = wheel_demo
     text = (tmp_path / "report.md").read_text()
-    assert "| (a) primary network `tiny_baseline_continued`" in text
-    assert "| (c) UniqueSplat `tiny_full`" in text
+    assert "| (a) primary network `study/tiny_baseline_continued`" in text
+    assert "| (c) UniqueSplat `study/tiny_full`" in text
     assert "## Verdict on view conditioning" in text and "| standard | psnr | (c) - (a) |" in text
     assert "pre-registered multi-seed verdict" in text  # checkpoints/verdict.json, from the wheel
     assert (tmp_path / "training_curves.png").is_file() and (tmp_path / "verdict.png").is_file()
@@ -75,13 +76,13 @@ def test_demo_quick_end_to_end(wheel_demo):
         assert (tmp_path / f"train_{variant}" / "checkpoints" / "last.ckpt").is_file()
     assert "sha256" in text and "drjit" in text  # where the numbers came from
     # the live (c)'s meter (whether it reads live at 32x32 is not asserted: it was trained at 64)
-    assert "| (c) live (`tiny_full_live`" in text
+    assert "| (c) live (`study/tiny_full_live`" in text
     live = json.loads((tmp_path / "eval_shipped_live" / "summary.json").read_text())
     assert "view_specificity" in live["splits"]["standard"]
     # the (c) trained beyond the context: its meter where the demo's scenes have the split
     beyond = json.loads((tmp_path / "eval_shipped_beyond" / "summary.json").read_text())
     assert "view_specificity" in beyond["splits"]["standard"]
-    assert "| (c) trained beyond the context (`tiny_full_beyond`), standard |" in text
+    assert "| (c) trained beyond the context (`full-64`), standard |" in text
     images = [line for line in text.splitlines() if line.startswith("![")]
     assert all((tmp_path / line.split("(")[1].rstrip(")")).is_file() for line in images)
 
@@ -214,7 +215,7 @@ def test_write_report_writes_a_section_each(tmp_path):
     text = write_report(demo_results(tmp_path / "demo", stable)).read_text()
     headings = [line for line in text.splitlines() if line.startswith("#")]
     assert headings == [
-        "# usplat-dr demo report",
+        "# usplat-dr demo report", "## Summary", "## What the demo did",
         "## The shipped checkpoints on fresh scenes (standard split)",
         "## Verdict on view conditioning (these scenes, the shipped seed)",
         "## Is (c)'s view-specific branch live? (the view-specificity meter)",
@@ -236,6 +237,27 @@ def test_write_report_writes_a_section_each(tmp_path):
     assert "No multi-seed verdict is shipped" in text and "Full `usplat bench`" not in text
 
 
+def test_the_report_opens_with_a_summary_that_fits_one_screen(tmp_path):
+    from usplat_dr.jobs.report import SUMMARY_LINES, write_report
+    from usplat_dr.training.checkpoints import CHECKPOINTS
+
+    registered = json.loads((CHECKPOINTS / "verdict.json").read_text())
+    results = dataclasses.replace(demo_results(tmp_path / "demo", {}), registered=registered)
+    lines = write_report(results).read_text().splitlines()
+    end = lines.index("## What the demo did")
+    summary = lines[:end]
+    assert summary[:3] == ["# usplat-dr demo report", "", "## Summary"]
+    assert len(summary) <= SUMMARY_LINES == 40
+    text = "\n".join(summary)
+    # the models with their margin over copying, the time, the registered question's 4 rows
+    assert "| 20.00 | +1.00 dB (19.00; 2 of 3) | 120 ms |" in text
+    assert "100 s in all" in text
+    rows = [line for line in summary if line.startswith(("| standard", "| extrapolation"))]
+    assert len(rows) == 4 and rows[1] == (
+        "| extrapolation (1-4 frames beyond) | 64x64 | +0.568 [+0.164, +0.972] | 4 | "
+        "**supports** |")
+
+
 def test_report_shows_the_live_c_meter_and_its_psnr_against_a(tmp_path):
     """The shipped live (c): its meter row (live: yes) beside the others, and a sentence with its
     PSNR against the shipped (a)'s and its signed per-target difference."""
@@ -251,7 +273,7 @@ def test_report_shows_the_live_c_meter_and_its_psnr_against_a(tmp_path):
     live = {"splits": {"standard": {"psnr": 25.69, "ssim": 0.8, "abs_rel": 0.09, "scenes": 3,
                                     "view_specificity": meter}}}
     text = "\n".join(meter_lines(dataclasses.replace(results, live=live)))
-    assert ("| (c) live (`tiny_full_live`: E_H reads the primary features) | 3 | 1.2e-02 | "
+    assert ("| (c) live (`study/tiny_full_live`: E_H reads the primary features) | 3 | 1.2e-02 | "
             "0.0900 dB [0.0600, 0.1200] | -0.0300 dB [-0.1700, +0.1100] | yes |") in text
     assert "renders 25.69 dB against the shipped (a)'s 20.00 dB" in text and "+0.0056 dB" in text
     assert "live (c)" not in "\n".join(meter_lines(results))  # no live summary: no row
@@ -297,8 +319,8 @@ def test_report_shows_the_beyond_c_meter_per_split_and_its_psnr_where_it_varies(
     summaries = {**results.summaries, "base": base}
     text = "\n".join(meter_lines(dataclasses.replace(results, beyond=beyond,
                                                       summaries=summaries)))
-    assert ("| (c) trained beyond the context (`tiny_full_beyond`), extrapolation | 4 | 1.3e-01 | "
+    assert ("| (c) trained beyond the context (`full-64`), extrapolation | 4 | 1.3e-01 | "
             "1.9000 dB [0.9500, 2.8500] | +2.4000 dB [+2.1000, +2.7000] | yes |") in text
-    assert "beyond the context (`tiny_full_beyond`), standard | 4 |" in text
+    assert "beyond the context (`full-64`), standard | 4 |" in text
     assert "renders 24.30 dB against the shipped (a)'s 21.90 dB" in text and "+1.3600 dB" in text
-    assert "tiny_full_beyond" not in "\n".join(meter_lines(results))  # no summary: no row
+    assert "full-64" not in "\n".join(meter_lines(results))  # no summary: no row

@@ -15,7 +15,7 @@ from usplat_dr.evaluation.verdict import table as verdict_table
 from usplat_dr.evaluation.view_specificity import LIVE_BOUND_DB
 from usplat_dr.io import atomic_open
 from usplat_dr.model.uniquesplat import VARIANTS
-from usplat_dr.training.checkpoints import BASE, BUDGETED, SHIPPED
+from usplat_dr.training.checkpoints import BASE, BEYOND, BUDGETED, LIVE, SHIPPED
 from usplat_dr.training.recipes import FINETUNE_LR, PRESET, RunRecipe
 from usplat_dr.training.run_log import GRAD_LABELS
 
@@ -101,7 +101,7 @@ class DemoResults:
 def write_report(results: DemoResults) -> Path:
     """``report.md`` in ``results.out``, from the results of the demo's steps and the files
     they wrote (renders, ``bench_demo/bench.md``, ``bench/bench.md``): a section each."""
-    sections = (intro_lines, shipped_lines, verdict_lines, meter_lines, split_lines,
+    sections = (summary_lines, intro_lines, shipped_lines, verdict_lines, meter_lines, split_lines,
                 worst_case_lines,
                 fine_tuning_lines, speed_lines, allocation_lines, novel_view_lines,
                 provenance_lines, wall_time_lines)
@@ -114,10 +114,68 @@ def write_report(results: DemoResults) -> Path:
 
 # Each section is a list of lines that ends with an empty one.
 
-def intro_lines(r: DemoResults) -> list[str]:
-    """The title and what the demo did."""
+#: The most lines ``summary_lines`` may take: the report's first screen.
+SUMMARY_LINES = 40
+#: The registered question's splits, as the summary names them.
+HEADLINE_SPLITS = {"standard": "standard (between the context views)",
+                   "extrapolation": "extrapolation (1-4 frames beyond)"}
+
+
+def headline_rows(registered: dict | None) -> list[tuple[str, str, dict]]:
+    """The registered question's rows of ``checkpoints/verdict.json`` (the paper's protocol
+    with extrapolated training targets), as (split, size, set): standard then extrapolation,
+    64x64 then 128x128 (the README's table)."""
+    rows = {}
+    for s in (registered or {}).get("sets", []):
+        split = s["set"].split(" split")[0]
+        if "paper's protocol" in s.get("arm", "") and split in HEADLINE_SPLITS:
+            size = "128x128" if "128x128" in s["set"] else "64x64"
+            rows[(size, split)] = (HEADLINE_SPLITS[split], size, s)
+    return [rows[k] for k in sorted(rows, key=lambda k: (k[0] != "64x64", k[1] != "standard"))]
+
+
+def summary_lines(r: DemoResults) -> list[str]:
+    """The report's first screen (at most ``SUMMARY_LINES``): what ran, each model's PSNR and
+    margin over copying the nearest context view, the registered verdict's rows and the time
+    taken; the sections below hold the detail."""
     b = r.recipe
-    return ["# usplat-dr demo report", "",
+    lines = ["# usplat-dr demo report", "", "## Summary", "",
+             (f"Recipe `{r.recipe_name}`: {b.test_scenes} fresh scenes at {b.size}x{b.size}, "
+              f"{r.timings.get('total', sum(r.timings.values())):.0f} s in all "
+              f"({r.provenance.get('cpu', 'this CPU')}, "
+              f"{r.provenance.get('torch_threads', '?')} thread(s))."), "",
+             "| model | PSNR, standard split | over copying the nearest view | time per scene |",
+             "|---|---|---|---|"]
+    models = [(_label(v, r.manifest), s) for v, s in r.summaries.items()]
+    if r.beyond:
+        models.append((f"(c) `{BEYOND}` (the users' (c))", r.beyond))
+    for name, s in models:
+        std = s["splits"].get("standard")
+        if std is None:
+            continue
+        time = s.get("time_per_scene_s")
+        lines.append(f"| {name} | {std['psnr']:.2f} | {_over_copy(std)} | "
+                     f"{'' if time is None else f'{1000 * time:.0f} ms'} |")
+    rows = headline_rows(r.registered)
+    if rows:
+        lines += ["", ("The registered verdict, (c) - (a) trained the same way "
+                       "(`checkpoints/verdict.json`, seed-level 95%):"), "",
+                  "| held-out split | size | (c) - (a), dB | live seeds | label |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {split} | {size} | {s['mean']:+.3f} [{s['seed_low']:+.3f}, "
+                  f"{s['seed_high']:+.3f}] | {s['seeds']} | **{s['label']}** |"
+                  for split, size, s in rows]
+        lines += ["", ("Per-view weights pay where a target leaves the context pair, not "
+                       "between the context views.")]
+    lines += ["", ("Below: the models in full, this run's verdict, the meter, per split, "
+                   "fine-tuning, speed, novel views, provenance and wall time."), ""]
+    return lines
+
+
+def intro_lines(r: DemoResults) -> list[str]:
+    """What the demo did."""
+    b = r.recipe
+    return ["## What the demo did", "",
             (f"Recipe `{r.recipe_name}`: {b.test_scenes} fresh held-out scenes rendered by "
              f"Mitsuba ({b.frames} frames, {b.size}x{b.size}; a seed none of the checkpoints was "
              f"trained or tested on), the shipped `{PRESET}` checkpoints evaluated on them with "
@@ -178,10 +236,10 @@ def meter_lines(r: DemoResults) -> list[str]:
     """The view-specificity meter (``evaluation.view_specificity``) of the shipped and the
     briefly fine-tuned (c) on the standard split: is Delta W different per target view?"""
     rows = [("(c) shipped", r.summaries.get("full")), ("(c) fine-tuned here", r.tuned.get("full")),
-            ("(c) live (`tiny_full_live`: E_H reads the primary features)", r.live)]
+            (f"(c) live (`{LIVE}`: E_H reads the primary features)", r.live)]
     rows = [(name, s["splits"]["standard"].get("view_specificity")) for name, s in rows if s]
     beyond = (r.beyond or {}).get("splits", {})
-    rows += [(f"(c) trained beyond the context (`tiny_full_beyond`), {split}",
+    rows += [(f"(c) trained beyond the context (`{BEYOND}`), {split}",
               beyond[split].get("view_specificity"))
              for split in ("standard", "extrapolation") if split in beyond]
     rows = [(name, m) for name, m in rows if m]

@@ -385,7 +385,7 @@ def init_from_checkpoint(model, path: str | os.PathLike, trust: bool = False) ->
     the new head starting at zero (``_load_adding_importance``). ``trust``: see
     ``read_usplat_checkpoint`` (``model.trust_checkpoint``)."""
     path = Path(path)
-    if not path.is_file() and len(path.parts) == 1:  # a shipped checkpoint's name
+    if not path.is_file():  # a shipped model's name (full-64, study/tiny_full, an old one)
         with contextlib.suppress(FileNotFoundError):
             path = resolve_checkpoint(path)
     if not path.is_file():
