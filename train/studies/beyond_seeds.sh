@@ -14,8 +14,9 @@
 # baseline_seed_N; or full: the paper's protocol, (c) from tiny_baseline with every weight
 # trained and its hypernetworks' outputs starting at zero, runs named full_seed_N), INIT (the
 # baseline and full arms' start, default tiny_baseline; the 128x128 verdict's: the 128x128 (a)),
-# IMAGE_SHAPE ("H W", default the data's config: 64 64), DRY_RUN=1 (print each seed's command,
-# run nothing).
+# IMAGE_SHAPE ("H W", default the data's config: 64 64), KEEP (the steps between kept
+# checkpoints, default 100; STOP must be a multiple), CKPT_EVERY (between checkpoints, default
+# 50; a divisor of KEEP), DRY_RUN=1 (print each seed's command, run nothing).
 set -uo pipefail
 # glibc gives every freed block above its mmap threshold (at most 32 MiB) back to the system,
 # and at 8 scenes a step of 128x128 many tensors are larger, so each step faults their pages
@@ -28,6 +29,7 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 cd "$ROOT"
 PY=${PYTHON:-.venv/bin/python}
 OUT=${OUT:-outputs/beyond}; STOP=${STOP:-300}; BEYOND=${BEYOND:-4}
+KEEP=${KEEP:-100}; CKPT_EVERY=${CKPT_EVERY:-50}
 DATA=${DATA:-outputs/big/train480}; JOBS=${JOBS:-2}; ARM=${ARM:-branch}
 INIT=${INIT:-tiny_baseline}; IMAGE_SHAPE=${IMAGE_SHAPE:-}; DRY_RUN=${DRY_RUN:-0}
 shape=()
@@ -55,7 +57,7 @@ run_seed() {
   [ -f "$kept" ] && { echo "seed $seed: step $STOP already kept"; return 0; }
   local cmd=("$PY" -m usplat_dr train --config synthetic_tiny_depth.yaml "dataset.roots=[$DATA]"
     "${shape[@]}" device=cpu threads=1 seed="$seed" dataset.overrides.seed="$seed"
-    train.progress=false train.steps=6000 train.checkpoint_every=50 train.keep_every=100
+    train.progress=false train.steps=6000 train.checkpoint_every="$CKPT_EVERY" train.keep_every="$KEEP"
     train.validate_every=100 train.log_every=10 data_loader.batch_size=8 "${arm[@]}"
     dataset.view_sampler.max_distance_beyond_context_views="$BEYOND" output_dir="$dir" --resume)
   if [ "$DRY_RUN" = 1 ]; then
