@@ -87,6 +87,16 @@ def test_imports_only_go_down_the_layers():
     assert not upward, "\n".join(sorted(upward))
 
 
+def test_a_job_imports_no_other_job_but_the_shared_ones():
+    # what the jobs share is in jobs/arguments.py (arguments and helpers) and jobs/report.py
+    # (result files to Markdown and PNG); a command's own module is imported by the CLI alone
+    shared = {"usplat_dr.jobs.arguments", "usplat_dr.jobs.report"}
+    crossing = [f"{m} imports {t}" for m, targets in GRAPH.items() if part(m) == "jobs"
+                for t in targets if part(t) == "jobs" and t != m and t not in shared
+                and t != "usplat_dr.jobs"]
+    assert not crossing, "\n".join(sorted(crossing))
+
+
 def test_nothing_imports_jobs():
     # usplat_dr.cli loads the chosen job by name (importlib), the one way in
     assert not [m for m, targets in GRAPH.items() if part(m) != "jobs"

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from usplat_dr.cli import main
-from usplat_dr.jobs.bench import BenchConfig, PeakMemory, choose, configs_argument
+from usplat_dr.evaluation.speed import BenchConfig, PeakMemory, budget_settings, choose
+from usplat_dr.jobs.bench import configs_argument
 from usplat_dr.jobs.report import pareto
 
 
@@ -79,7 +80,7 @@ def test_gaussians_takes_a_list_of_counts_or_fractions_and_the_old_name_says_so(
         assert not caplog.records
         assert parser.parse_args(["--fractions", "0.1,0.3"]).gaussians == (0.1, 0.3)
     assert "--fractions is now --gaussians" in caplog.text
-    assert [name for name, *_ in bench.budget_settings((0.1, 5000), ("footprint",))] == [
+    assert [name for name, *_ in budget_settings((0.1, 5000), ("footprint",))] == [
         "footprint10%", "footprint5000"]
 
 
@@ -92,7 +93,8 @@ def test_measure_sweeps_gaussian_budgets_beside_pruning(tmp_path, caplog):
     import logging
 
     from usplat_dr.data.synth import synthesize
-    from usplat_dr.jobs.bench import measure, write_results
+    from usplat_dr.evaluation.speed import measure
+    from usplat_dr.jobs.report import write_results
     from usplat_dr.model import UniqueSplat
     from usplat_dr.training.loader import load
 
@@ -139,7 +141,8 @@ def test_measure_times_the_automatic_count_beside_fixed_budgets(tmp_path, caplog
     import logging
 
     from usplat_dr.data.synth import synthesize
-    from usplat_dr.jobs.bench import measure, write_results
+    from usplat_dr.evaluation.speed import measure
+    from usplat_dr.jobs.report import write_results
     from usplat_dr.training.loader import load
 
     caplog.set_level(logging.ERROR, logger="usplat_dr.model.uniquesplat")

@@ -16,12 +16,12 @@ from usplat_dr.jobs.render import targets
 
 
 def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene, tmp_path, capsys):
-    # own photographs get the largest shipped size of the model named: tiny_full_128 (the frames
-    # are compared with its renders below)
+    # no --checkpoint: own photographs get the largest shipped (c), full-128 (the frames are
+    # compared with its renders below)
     images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (1, 3)]
     sparse = str(user_scene.root / "sparse" / "0")
     out = tmp_path / "out"
-    assert main(["-q", "render", "--checkpoint", "tiny_full", "--images", *images,
+    assert main(["-q", "render", "--images", *images,
                  "--cameras", sparse, "--frames", "4", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "gaussians_frame0000.ply" in printed and "4 frames" in printed
@@ -42,7 +42,7 @@ def test_two_images_and_a_colmap_model_give_frames_a_video_and_a_ply(user_scene,
     # level (3 of 196,608 values, 2026-11-29; at 64x64 they matched exactly; the cause, likely
     # a different summation order in one of the two calls, is not pinned down). Another model
     # or camera differs by tens of levels in most values.
-    model = usplat_dr.load("tiny_full_128")
+    model = usplat_dr.load("full-128")
     views = context_views(images, read_cameras(sparse), (128, 128))
     te, tk = targets("orbit", views.extrinsics, views.intrinsics, 4, (128, 128))
     pred = model.predict(views.images, intrinsics=views.intrinsics, extrinsics=views.extrinsics,
@@ -58,7 +58,7 @@ def test_a_transforms_json_with_its_cameras_as_the_path(user_scene, tmp_path):
     images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (0, 2)]
     cameras = str(user_scene.root / "transforms.json")
     out = tmp_path / "out"
-    assert main(["-q", "render", "--checkpoint", "tiny_baseline", "--images", *images,
+    assert main(["-q", "render", "--checkpoint", "baseline-64", "--images", *images,
                  "--cameras", cameras, "--near", "2", "--far", "7", "--path", cameras,
                  "--out", str(out)]) == 0
     assert len(list((out / "frames").glob("*.png"))) == len(user_scene.names)  # every camera
@@ -70,7 +70,7 @@ def test_a_range_far_outside_the_training_range_is_warned_about(user_scene, tmp_
 
     def render(near: str, far: str) -> list[str]:
         caplog.clear()
-        assert main(["-q", "render", "--checkpoint", "tiny_baseline", "--images", *images,
+        assert main(["-q", "render", "--checkpoint", "baseline-64", "--images", *images,
                      "--cameras", cameras, "--near", near, "--far", far, "--frames", "2",
                      "--out", str(tmp_path / "out")]) == 0
         return [r.getMessage() for r in caplog.records if "training range" in r.getMessage()]
@@ -87,7 +87,7 @@ def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp
 
     images = [str(user_scene.root / "images" / user_scene.names[i]) for i in (0, 2)]
     cameras = str(user_scene.root / "transforms.json")
-    args = ["-q", "render", "--checkpoint", "tiny_full", "--images", *images, "--cameras",
+    args = ["-q", "render", "--checkpoint", "full-64", "--images", *images, "--cameras",
             cameras, "--near", "2", "--far", "7", "--path", cameras]
     frames = {}
     for chunk in (2, 8):  # 6 cameras: three chunks of 2, or one
@@ -126,7 +126,7 @@ def test_mistakes_name_the_argument(user_scene, capsys, monkeypatch, tmp_path, e
     fill = {"{a}": str(user_scene.root / "images" / user_scene.names[0]),
             "{b}": str(user_scene.root / "images" / user_scene.names[1]),
             "{json}": str(user_scene.root / "transforms.json")}
-    assert main(["-q", "render", "--checkpoint", "tiny_full",
+    assert main(["-q", "render", "--checkpoint", "full-64",
                  *[fill.get(x, x) for x in extra]]) == 2
     assert needle in capsys.readouterr().err
 

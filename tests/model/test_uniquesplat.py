@@ -287,10 +287,22 @@ def test_bad_configuration_and_inputs_name_the_argument():
     args = scene(n=2)
     te, tk = args.target_extrinsics, args.target_intrinsics
     tn, tf = args.target_near, args.target_far
+
+    def unchecked(*fields) -> Cameras:
+        # cameras whose fields disagree, built past the dataclass's own shape check (which the
+        # suite's jaxtyping hook runs): what check_targets must catch on its own
+        cams = object.__new__(Cameras)
+        for name, value in zip(("extrinsics", "intrinsics", "near", "far"), fields,
+                               strict=True):
+            object.__setattr__(cams, name, value)
+        return cams
+
     with pytest.raises(ValueError, match="target_extrinsics must have shape"):
-        model.check_targets(1, te[:, :, :3], tk, tn, tf)
+        model.check_targets(1, unchecked(te[:, :, :3], tk, tn, tf))
     with pytest.raises(ValueError, match="target_near must have shape"):
-        model.check_targets(1, te, tk, tn[:, :1], tf)
+        model.check_targets(1, unchecked(te, tk, tn[:, :1], tf))
+    with pytest.raises(ValueError, match=r"target_intrinsics must have shape \[B=2, N, 3, 3\]"):
+        model.check_targets(2, args.targets)
 
 
 def test_inference_culling_keeps_the_renders():
@@ -425,9 +437,7 @@ def test_a_reused_encoding_and_given_delta_w_render_what_forward_renders():
         ref = model(*args)
         encoding = model.encode(**context(args))
         again = model(*args, hooks=StudyHooks(encoding=encoding))
-        _, deltas, _ = model._target_weights(
-            args.images, args.extrinsics, args.intrinsics, args.target_extrinsics,
-            args.target_intrinsics, args.target_near, args.target_far)
+        _, deltas, _ = model._target_weights(args.images, args.context, args.targets)
         given = model(*args, hooks=StudyHooks(encoding=encoding, delta_w=deltas))
     # the same arithmetic on the same tensors: bit-for-bit
     assert torch.equal(again.color, ref.color) and torch.equal(given.color, ref.color)

@@ -13,7 +13,7 @@ import torch
 
 from usplat_dr.cli import main
 from usplat_dr.data.chunks import stored_image_shape
-from usplat_dr.jobs import render as render_job
+from usplat_dr.jobs import arguments as job_arguments
 from usplat_dr.training import registry
 from usplat_dr.training.checkpoints import training_image_shape
 from usplat_dr.training.registry import (
@@ -90,18 +90,18 @@ def test_a_named_model_never_changes_size(root, monkeypatch):
     in_root(monkeypatch, root)
     for shape in ([256, 256], [64, 64], None):
         args = Namespace(checkpoint="c-64", image_shape=shape, images=["a.png", "b.png"])
-        assert render_job.fit_checkpoint(args) == "c-64"
+        assert job_arguments.fit_checkpoint(args) == "c-64"
 
 
 def test_commands_choose_the_default_for_the_request_and_say_so(root, monkeypatch, caplog):
     in_root(monkeypatch, root)
-    caplog.set_level(logging.INFO, logger="usplat_dr.jobs.render")
+    caplog.set_level(logging.INFO, logger="usplat_dr.jobs.arguments")
     args = Namespace(checkpoint=None, image_shape=[128, 128], images=None)
-    assert render_job.fit_checkpoint(args) == "c-128" and args.checkpoint == "c-128"
+    assert job_arguments.fit_checkpoint(args) == "c-128" and args.checkpoint == "c-128"
     assert "no --checkpoint: using c-128" in caplog.text
     # your own images without --image-shape: the largest
     args = Namespace(checkpoint=None, image_shape=None, images=["a.png", "b.png"])
-    assert render_job.fit_checkpoint(args) == "c-256"
+    assert job_arguments.fit_checkpoint(args) == "c-256"
 
 
 def test_usplat_models_lists_the_user_models_and_all_with_all(root, monkeypatch, capsys):
@@ -133,7 +133,7 @@ def synth_root(path, shape, record=True):
 
 def in_root(monkeypatch, root):
     """The render job's view of the shipped checkpoints: those of ``root``."""
-    monkeypatch.setattr(render_job, "default_checkpoint",
+    monkeypatch.setattr(job_arguments, "default_checkpoint",
                         lambda s: default_checkpoint(s, root=root))
 
 
@@ -147,10 +147,10 @@ def test_without_a_checkpoint_data_gets_the_c_of_its_stored_size(
     data = synth_root(tmp_path / "data", shape, record)
     assert stored_image_shape(data) == shape
     args = Namespace(checkpoint=None, image_shape=None, images=None, data=str(data))
-    assert render_job.fit_checkpoint(args) == expected
+    assert job_arguments.fit_checkpoint(args) == expected
     # --image-shape wins over the stored size
     args = Namespace(checkpoint=None, image_shape=[64, 64], images=None, data=str(data))
-    assert render_job.fit_checkpoint(args) == "c-64"
+    assert job_arguments.fit_checkpoint(args) == "c-64"
 
 
 def test_synth_json_is_read_before_the_images(tmp_path):
@@ -163,11 +163,11 @@ def test_synth_json_is_read_before_the_images(tmp_path):
 
 def test_the_data_is_not_read_for_a_named_model(root, monkeypatch):
     in_root(monkeypatch, root)
-    monkeypatch.setattr(render_job, "stored_image_shape",
+    monkeypatch.setattr(job_arguments, "stored_image_shape",
                         lambda d: pytest.fail("read the data for a named model"))
     for name in ("c-64", str(root / "c-64.pt")):  # a name; a file
         args = Namespace(checkpoint=name, image_shape=None, images=None, data="d")
-        assert render_job.fit_checkpoint(args) == name
+        assert job_arguments.fit_checkpoint(args) == name
 
 
 def test_a_dataset_of_unreadable_size_gets_the_64x64_default(root, tmp_path, monkeypatch):
@@ -177,7 +177,7 @@ def test_a_dataset_of_unreadable_size_gets_the_64x64_default(root, tmp_path, mon
     (tmp_path / "bad" / "synth.json").write_text('{"resolution": "large"}')
     assert stored_image_shape(tmp_path / "bad") is None  # no chunk to read either
     args = Namespace(checkpoint=None, image_shape=None, images=None, data=str(tmp_path / "bad"))
-    assert render_job.fit_checkpoint(args) == "c-64"
+    assert job_arguments.fit_checkpoint(args) == "c-64"
 
 
 # ---- The shipped manifest -----------------------------------------------------------------

@@ -27,11 +27,11 @@ from usplat_dr.data.types import model_inputs
 from usplat_dr.evaluation import evaluate, load_example, synthetic_indices
 from usplat_dr.evaluation.figures import save_comparison
 from usplat_dr.evaluation.provenance import provenance
+from usplat_dr.evaluation.speed import BenchConfig, measure
 from usplat_dr.evaluation.verdict import chart as verdict_chart
 from usplat_dr.evaluation.verdict import compare
 from usplat_dr.jobs.arguments import non_negative_int
-from usplat_dr.jobs.bench import BenchConfig, measure, write_results
-from usplat_dr.jobs.report import DemoResults, write_report
+from usplat_dr.jobs.report import DemoResults, write_report, write_results
 from usplat_dr.model.auto_budget import AutoBudget
 from usplat_dr.training import train
 from usplat_dr.training.checkpoints import (

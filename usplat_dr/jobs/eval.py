@@ -14,24 +14,22 @@ from usplat_dr.evaluation.protocol import copy_line
 from usplat_dr.jobs.arguments import (
     CHECKPOINT_HELP,
     DATASET_HELP,
+    DATASETS,
     DEVICE_HELP,
     add_budget_arguments,
-    check_budget_arguments,
-    out_folder,
-)
-from usplat_dr.jobs.render import (
     add_image_shape_argument,
     add_near_far_arguments,
     add_trust_argument,
+    budget_from_args,
+    check_budget_arguments,
     dataset_section,
     fit_checkpoint,
+    out_folder,
 )
-from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.render.prune import PruneSettings
 from usplat_dr.training.checkpoints import checkpoint_provenance
 from usplat_dr.training.loader import load
 
-DATASETS = ["synth", "re10k", "acid", "dtu"]
 log = logging.getLogger(__name__)
 
 
@@ -118,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     summary = evaluate(model, dataset, indices, args.out, lpips=lpips, device=args.device,
                        prune=PruneSettings(merge=True) if args.prune else None,
                        provenance=record,
-                       budget=make_budget(args.gaussians, args.rank_by, args.tolerance))
+                       budget=budget_from_args(args))
     print(json.dumps(summary, indent=1))
     for split, metrics in summary["splits"].items():  # the margin over the trivial predictor
         if metrics["scenes"]:

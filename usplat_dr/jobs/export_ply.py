@@ -6,15 +6,17 @@ import argparse
 import torch
 
 from usplat_dr.data.types import model_inputs
-from usplat_dr.jobs.arguments import check_budget_arguments, non_negative_int, out_file
-from usplat_dr.jobs.render import (
+from usplat_dr.jobs.arguments import (
     add_example_arguments,
     add_near_far_arguments,
+    budget_from_args,
+    check_budget_arguments,
     check_near_far,
     fit_checkpoint,
+    non_negative_int,
     one_example,
+    out_file,
 )
-from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.model.ply import write_ply
 
 
@@ -35,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     model, batch = one_example(args)
     with torch.no_grad():
         out = model(*model_inputs(batch, torch.device(args.device)), render=False,
-                    budget=make_budget(args.gaussians, args.rank_by, args.tolerance))
+                    budget=budget_from_args(args))
     n = out.num_targets
     if not 0 <= args.target < n:
         raise ValueError(f"--target must be in 0..{n - 1} (the scene's target views), got "

@@ -17,224 +17,31 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from usplat_dr.data.chunks import stored_image_shape
 from usplat_dr.data.types import model_inputs
 from usplat_dr.data.user_views import (
-    UserViews,
-    context_views,
-    crop_advice,
     read_cameras,
     target_cameras,
 )
-from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.camera_paths import camera_path
-from usplat_dr.geometry.plane_sweep import near_far_from_sweep
 from usplat_dr.io.images import colorize_depth, save_png
 from usplat_dr.io.video import write_video
 from usplat_dr.jobs.arguments import (
-    CHECKPOINT_HELP,
-    DATASET_HELP,
-    DEVICE_HELP,
-    add_budget_arguments,
+    add_example_arguments,
+    add_own_views_arguments,
     at_least,
+    budget_from_args,
     check_budget_arguments,
+    fit_checkpoint,
+    image_shape,
+    one_example,
     out_folder,
-    positive_float,
-    positive_int,
+    own_views,
 )
 from usplat_dr.model.ply import write_ply
 from usplat_dr.model.predict import Prediction
-from usplat_dr.training.checkpoints import depth_range_warning, training_image_shape
 from usplat_dr.training.loader import load
-from usplat_dr.training.registry import default_checkpoint
 
 log = logging.getLogger(__name__)
-
-DATASETS = ["synth", "re10k", "acid", "dtu"]
-
-
-def add_example_arguments(p: argparse.ArgumentParser, data_required: bool = True) -> None:
-    """The arguments naming a model and one evaluation example (``render``, ``export-ply``)."""
-    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
-    p.add_argument("--data", required=data_required, help="dataset root (chunk format)")
-    p.add_argument("--dataset", default="synth", choices=DATASETS,
-                   help=DATASET_HELP)
-    p.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
-                   "standard split)")
-    p.add_argument("--scene", help="scene key (default: the first of the index)")
-    add_image_shape_argument(p)
-    add_trust_argument(p)
-    add_budget_arguments(p)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
-                   help=DEVICE_HELP)
-
-
-def add_trust_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--trust-checkpoint", action="store_true",
-                   help="unpickle the checkpoint fully if torch.load(weights_only=True) refuses "
-                   "it (it can run code: only for files you trust)")
-
-
-def add_image_shape_argument(p: argparse.ArgumentParser, fits: bool = True) -> None:
-    """``--image-shape``; ``fits``: without --checkpoint the command's default model is the
-    one for that size (``fit_checkpoint``), and its help says so."""
-    fitted = ("; without --checkpoint, the shipped (c) trained nearest it, or nearest --data's "
-              "stored size, or the largest for your own images" if fits else "")
-    p.add_argument("--image-shape", type=positive_int, nargs=2, metavar=("H", "W"),
-                   help="the size images are cropped and resized to (default: the size the "
-                   f"checkpoint was trained at{fitted})")
-
-
-def image_shape(args: argparse.Namespace) -> tuple[int, int]:
-    """``--image-shape``, or the checkpoint's training image shape (the dataset preset's
-    default, 256 x 256, for a checkpoint that records none)."""
-    if args.image_shape:
-        return tuple(args.image_shape)
-    return training_image_shape(args.checkpoint, args.trust_checkpoint) or (256, 256)
-
-
-def fit_checkpoint(args: argparse.Namespace) -> str:
-    """``--checkpoint`` as given (a name never changes size: ``full-64`` is that model at any
-    size); without one, the shipped (c) for the request, which ``args.checkpoint`` becomes
-    (``default_checkpoint``): the one trained nearest ``--image-shape``, else nearest the size
-    ``--data``'s images are stored at, else with your own ``--images`` the largest; said."""
-    if args.checkpoint is not None:
-        return args.checkpoint
-    if args.image_shape is not None:
-        shape = tuple(args.image_shape)
-    elif getattr(args, "images", None) is not None:
-        shape = None  # your own photographs: larger than any model's size
-    else:
-        data = getattr(args, "data", None)
-        shape = stored_image_shape(data) if data is not None else None
-        if shape is None:
-            shape = (64, 64) if data is not None else None
-    args.checkpoint, line = default_checkpoint(shape)
-    log.info("%s", line)
-    return args.checkpoint
-
-
-def one_example(args: argparse.Namespace) -> tuple:
-    """The model and the example that ``add_example_arguments``' arguments name."""
-    index = args.index or synthetic_indices(args.data, ["standard"])["standard"]
-    model = load(args.checkpoint, args.device, args.trust_checkpoint)
-    return model, load_example(dataset_section(args), index, args.scene)
-
-
-def dataset_section(args: argparse.Namespace) -> dict:
-    """The dataset section of ``--data``, ``--dataset``, the image shape and, where given,
-    ``--near``/``--far`` (overriding each scene's recorded range)."""
-    dataset = {"name": args.dataset, "roots": [args.data], "image_shape": image_shape(args)}
-    if hasattr(args, "near"):
-        check_near_far(args)
-        if args.near is not None:
-            dataset["overrides"] = {"near": args.near, "far": args.far}
-    return dataset
-
-
-def add_own_views_arguments(p: argparse.ArgumentParser) -> None:
-    """The arguments naming a user's own context views (``render``, ``view``)."""
-    own = p.add_argument_group("your own context views (instead of --data)")
-    own.add_argument("--images", nargs="+", metavar="IMAGE",
-                     help="two (or more) context images, named as in --cameras (without "
-                     "--cameras they are posed by COLMAP first: usplat pose)")
-    own.add_argument("--cameras", help="their cameras: a COLMAP model folder (sparse/0) or a "
-                     "nerfstudio transforms.json (default: pose the images with COLMAP)")
-    add_near_far_arguments(own, "from the COLMAP model's sparse points, else estimated by a "
-                           "plane sweep between the two context views")
-    own.add_argument("--ignore-distortion", action="store_true",
-                     help="drop lens distortion coefficients (else they are an error)")
-
-
-def add_near_far_arguments(p, default: str) -> None:
-    """``--near`` and ``--far`` (scene units), ``default`` saying where they come from
-    otherwise."""
-    p.add_argument("--near", type=positive_float, help=f"near depth, scene units (default: "
-                   f"{default})")
-    p.add_argument("--far", type=positive_float, help="far depth (as --near)")
-
-
-def check_own_views(args: argparse.Namespace) -> None:
-    """The mistakes in ``add_own_views_arguments``' arguments that need no file read."""
-    check_near_far(args)
-
-
-def check_near_far(args: argparse.Namespace) -> None:
-    if (args.near is None) != (args.far is None):
-        raise ValueError("give both --near and --far, or neither")
-    if args.near is not None and not args.near < args.far:
-        raise ValueError(f"--near must be below --far, got {args.near} and {args.far}")
-
-
-def pose_own_images(args: argparse.Namespace, folder: Path) -> None:
-    """``--images`` without ``--cameras``: the images posed by COLMAP into ``folder``
-    (``usplat_dr.data.pose``; reused when it already holds these photos' poses), then
-    ``args.cameras`` its model and ``args.images`` its undistorted copies."""
-    from usplat_dr import _threads  # (with pycolmap, only where photos are posed)
-    from usplat_dr.data.pose import PoseSettings, pose_photos, posed_before
-
-    photos = [Path(p) for p in args.images]
-    result = posed_before(photos, folder)
-    if result is None:
-        print(f"no --cameras: posing the {len(photos)} photos with COLMAP (pycolmap) into "
-              f"{folder} (usplat pose does this alone)")
-        result = pose_photos(photos, folder, PoseSettings(threads=_threads.choose().threads))
-    else:
-        print(f"no --cameras: using the poses of these photos in {folder}")
-    print(result.line())
-    missing = [p.name for p in photos if p.name not in result.registered]
-    if missing:
-        raise ValueError(f"COLMAP could not pose {', '.join(missing)} (pose.json in {folder} "
-                         "says why): give --cameras, or more photos of the scene with "
-                         "usplat pose")
-    args.cameras = str(result.model)
-    args.images = [str(result.images / p.name) for p in photos]
-
-
-def own_views(args: argparse.Namespace, trained_range: list[float] | None = None,
-              pose_folder: Path | None = None) -> tuple[UserViews, float, float]:
-    """The context views ``--images`` and ``--cameras`` name (posed first into
-    ``pose_folder`` without ``--cameras``: ``pose_own_images``), cropped to ``image_shape``,
-    and near/far (``--near``/``--far``, else from the sparse points, else estimated by a
-    plane sweep between the first two views), printed, with a warning when they lie far
-    outside ``trained_range`` (the model's ``trained_depth_range``)."""
-    check_own_views(args)
-    if args.cameras is None:
-        from usplat_dr.data.pose import default_pose_folder  # only where photos are posed
-
-        pose_own_images(args, pose_folder or default_pose_folder(args.images))
-        posed = True
-    else:
-        posed = False
-    scene, shape = read_cameras(args.cameras, args.ignore_distortion), image_shape(args)
-    views = context_views(args.images, scene, shape)
-    shapes = {tuple(int(n) for n in s) for s in scene.image_shapes}
-    for advice in sorted(filter(None, (crop_advice(s, shape) for s in shapes))):
-        print(advice)
-    if args.near is not None:
-        near, far, where = args.near, args.far, "--near/--far"
-    elif views.near is not None:
-        near, far = views.near, views.far
-        where = "from the sparse points; --near/--far to set it"
-    else:
-        near, far = near_far_from_sweep(
-            [im.permute(1, 2, 0).numpy() for im in views.images[:2]],
-            list(views.intrinsics[:2].double().numpy()),
-            list(views.extrinsics[:2].double().numpy()))
-        where = ("no sparse points: estimated by a plane sweep between the two context "
-                 "views; --near/--far to set it")
-    if posed:
-        baseline = float((views.extrinsics[0, :3, 3] - views.extrinsics[1, :3, 3]).norm())
-        where += (f"; COLMAP's scale is arbitrary: the context cameras are {baseline:.3g} "
-                  "units apart")
-    # the range matters (2-3 dB against the one a scene was trained with, docs/data.md): say it
-    print(f"near/far {near:.4g} / {far:.4g} ({where})")
-    # COLMAP's units are arbitrary: a range far from the trained one says nothing there
-    warning = None if posed else depth_range_warning(near, far, trained_range)
-    if warning:
-        log.warning(warning)
-    return views, near, far
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_example_arguments(p, data_required=False)
@@ -260,8 +67,7 @@ def run(args: argparse.Namespace) -> int:
         model, batch = one_example(args)
         colors, depths = render_path(model, batch, args.frames, device=args.device,
                                      path=args.path, image_shape=image_shape(args),
-                                     budget=args.gaussians, rank_by=args.rank_by,
-                                     tolerance=args.tolerance)
+                                     budget=budget_from_args(args))
     else:
         model = load(args.checkpoint, args.device, args.trust_checkpoint)
         pred = predict_own_views(model, args)
@@ -341,8 +147,7 @@ def predict_own_views(model, args: argparse.Namespace) -> Prediction:
     return model.predict(views.images, intrinsics=views.intrinsics,
                          extrinsics=views.extrinsics, target_intrinsics=tk,
                          target_extrinsics=te, near=near, far=far, chunk=PATH_CHUNK,
-                         budget=args.gaussians, rank_by=args.rank_by, all_gaussians=False,
-                         tolerance=args.tolerance)
+                         budget=budget_from_args(args), all_gaussians=False)
 
 
 def render_path(model, batch: dict, frames: int = 60, chunk: int = 8,

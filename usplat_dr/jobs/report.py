@@ -3,6 +3,7 @@ the tables), and ``usplat bench``'s chart and table. Pure functions from results
 and PNG; the measuring is in ``demo`` and ``bench``, and ``metrics.csv`` is read and
 summarised (``curves``, ``stability``) by ``usplat_dr.training.run_log``, which writes it."""
 
+import csv
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,10 +11,11 @@ import matplotlib
 import matplotlib.pyplot as plt
 from matplotlib.lines import Line2D
 
+from usplat_dr.evaluation.speed import FIELDS, choose
 from usplat_dr.evaluation.verdict import Comparison
 from usplat_dr.evaluation.verdict import table as verdict_table
 from usplat_dr.evaluation.view_specificity import LIVE_BOUND_DB
-from usplat_dr.io import atomic_open
+from usplat_dr.io import atomic_open, write_json
 from usplat_dr.model.uniquesplat import VARIANTS
 from usplat_dr.training.checkpoints import BASE, BEYOND, BUDGETED, LIVE, SHIPPED
 from usplat_dr.training.recipes import FINETUNE_LR, PRESET, RunRecipe
@@ -533,3 +535,19 @@ def bench_table(rows: list[dict]) -> str:
             f"{r['gaussians_per_view']:.0f} | {r['kept_fraction']:.2f} | {r['psnr']:.2f} | "
             f"{fmt(r['psnr_change_db'], '+.3f')} | {r['ssim']:.3f} | {r['abs_rel']:.3f} |")
     return "\n".join(lines)
+
+
+def write_results(rows: list[dict], model_size: int, out: Path) -> dict:
+    """``usplat bench``'s files in ``out`` from ``measure``'s rows: ``bench.csv``, ``bench.png``,
+    ``summary.json`` (``choose``'s decisions, returned) and ``bench.md``."""
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_open(out / "bench.csv", "w") as f:
+        w = csv.DictWriter(f, fieldnames=FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    bench_chart(rows, model_size, out / "bench.png")
+    decision = choose(rows, model_size)
+    write_json(out / "summary.json", decision)
+    with atomic_open(out / "bench.md", "w") as f:
+        f.write(bench_table(rows) + "\n")
+    return decision

@@ -35,9 +35,11 @@ import torch
 from usplat_dr.data.types import model_inputs
 from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz, quat_xyzw_to_matrix
 from usplat_dr.io.images import colorize_depth, to_uint8
-from usplat_dr.jobs.arguments import CHECKPOINT_HELP, DATASET_HELP, DEVICE_HELP
-from usplat_dr.jobs.render import (
+from usplat_dr.jobs.arguments import (
+    CHECKPOINT_HELP,
+    DATASET_HELP,
     DATASETS,
+    DEVICE_HELP,
     add_image_shape_argument,
     add_own_views_arguments,
     add_trust_argument,

@@ -17,7 +17,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
-from usplat_dr.geometry.cameras import Cameras, baseline_scale, scale_world
+from usplat_dr.geometry.cameras import Cameras, baseline_scale
 from usplat_dr.model.auto_budget import AutoBudget, Calibration, choose_keep, image_psnr
 from usplat_dr.model.budget import (
     GaussianBudget,
@@ -386,8 +386,11 @@ class UniqueSplat(nn.Module):
 
     # ---- forward ------------------------------------------------------------------------
 
-    def check_targets(self, b: int, target_extrinsics, target_intrinsics, target_near,
-                      target_far) -> int:
+    def check_targets(self, b: int, targets: Cameras) -> int:
+        """N, the targets per example, once ``targets`` are B examples' finite cameras of
+        the right shapes with 0 < near < far (else a ``ValueError`` naming the field)."""
+        target_extrinsics, target_intrinsics, target_near, target_far = (
+            targets.extrinsics, targets.intrinsics, targets.near, targets.far)
         if target_intrinsics.ndim != 4 or target_intrinsics.shape[0] != b:
             raise ValueError(f"target_intrinsics must have shape [B={b}, N, 3, 3], got "
                              f"{list(target_intrinsics.shape)}")
@@ -440,32 +443,26 @@ class UniqueSplat(nn.Module):
         world_context, world_targets = context, targets
         if scale is not None:  # the network runs in the gauge, the Gaussians come back
             context, targets = context.scaled(1.0 / scale), targets.scaled(1.0 / scale)
-        extrinsics, intrinsics, near, far = (context.extrinsics, context.intrinsics,
-                                             context.near, context.far)
-        target_extrinsics, target_intrinsics, target_near, target_far = (
-            targets.extrinsics, targets.intrinsics, targets.near, targets.far)
         if isinstance(prune, str) and prune != "auto":
             raise ValueError(f"prune must be a PruneSettings, None or 'auto', got {prune!r}")
         if prune == "auto":
             prune = None if self.training else self.inference_prune
         b, v, _, h, w = images.shape
-        n = self.check_targets(b, target_extrinsics, target_intrinsics, target_near, target_far)
+        n = self.check_targets(b, targets)
         with self._autocast(images.device):
             if encoding is None:
-                depth = self._encode(images, extrinsics, intrinsics, near, far)
+                depth = self._encode(images, context)
             else:
                 depth = self._check_encoding(encoding, b, v, h, w)
             if delta_w is None:
-                weights, deltas, aux = self._target_weights(
-                    images, extrinsics, intrinsics, target_extrinsics, target_intrinsics,
-                    target_near, target_far, depth)
+                weights, deltas, aux = self._target_weights(images, context, targets, depth)
             else:
                 weights = dict(zip(self.cfg.target_layers, self.agnostic_weights()))
                 deltas, aux = self._check_delta_w(delta_w, b * n), {}
             nb = n if deltas else 1  # per-target work only where Delta W exists
-            depth_out = self._run_heads(depth, weights, deltas, near, far, v, b, nb)
-        gaussians = self._gaussians_per_target(depth_out, extrinsics, intrinsics, (h, w),
-                                               global_step, b, n, nb)
+            depth_out = self._run_heads(depth, weights, deltas, context, v, b, nb)
+        gaussians = self._gaussians_per_target(depth_out, context, (h, w), global_step, b, n,
+                                               nb)
         context, targets = world_context, world_targets
         if scale is not None:
             gaussians = gaussians.scaled(scale.repeat_interleave(n))
@@ -622,14 +619,15 @@ class UniqueSplat(nn.Module):
         """The primary network up to its heads (backbone, transformer, cost volume, U-Nets):
         what ``forward`` computes once per scene, reusable as its ``encoding`` (in the
         model's gauge; the cameras are given in their own unit)."""
+        context = Cameras(extrinsics, intrinsics, near, far)
         scale = self.gauge_scale(extrinsics)
         if scale is not None:
-            extrinsics, near, far = scale_world(extrinsics, near, far, 1.0 / scale)
-        return self._encode(images, extrinsics, intrinsics, near, far)
+            context = context.scaled(1.0 / scale)
+        return self._encode(images, context)
 
-    def _encode(self, images, extrinsics, intrinsics, near, far) -> DepthOutputs:
-        return self.primary.encode(images, extrinsics, intrinsics, near, far,
-                                   run_heads=False)[2]
+    def _encode(self, images, context: Cameras) -> DepthOutputs:
+        return self.primary.encode(images, context.extrinsics, context.intrinsics, context.near,
+                                   context.far, run_heads=False)[2]
 
     @staticmethod
     def _check_encoding(encoding, b: int, v: int, h: int, w: int) -> DepthOutputs:
@@ -682,33 +680,31 @@ class UniqueSplat(nn.Module):
         (``encode``'s), or the context ``near``/``far`` to compute it."""
         if self.specific is None:
             return {}
-        self.check_targets(images.shape[0], target_extrinsics, target_intrinsics, target_near,
-                           target_far)
+        targets = Cameras(target_extrinsics, target_intrinsics, target_near, target_far)
+        self.check_targets(images.shape[0], targets)
         if self.cfg.view_features == "primary" and encoding is None:
             if near is None or far is None:
                 raise ValueError("near and far (or encoding) are needed: this model's E_H "
                                  "reads the primary network's features")
             encoding = self.encode(images, extrinsics, intrinsics, near, far)
+        # the branch reads the context cameras' poses, not their near/far: where none are
+        # given, any positive pair stands in
+        bounds = (near, far) if near is not None and far is not None else (
+            extrinsics.new_ones(extrinsics.shape[:2]), extrinsics.new_full(extrinsics.shape[:2], 2))
+        context = Cameras(extrinsics, intrinsics, *bounds)
         scale = self.gauge_scale(extrinsics)
         if scale is not None:  # the branch reads the cameras in the network's gauge
-            target_extrinsics, target_near, target_far = scale_world(
-                target_extrinsics, target_near, target_far, 1.0 / scale)
-            extrinsics = scale_world(extrinsics, None, None, 1.0 / scale)[0]
-        return self._target_weights(images, extrinsics, intrinsics, target_extrinsics,
-                                    target_intrinsics, target_near, target_far, encoding)[1]
+            context, targets = context.scaled(1.0 / scale), targets.scaled(1.0 / scale)
+        return self._target_weights(images, context, targets, encoding)[1]
 
     def generated_weights(self) -> dict[str, tuple[Tensor, Tensor]]:
         """W, the view-agnostic weights of the target layers: layer name -> (weight, bias)
         (the head's own convolutions for the baseline)."""
         return dict(zip(self.cfg.target_layers, self.agnostic_weights()))
 
-    def _target_weights(self, images: Float[Tensor, "b v 3 h w"],
-                        extrinsics: Float[Tensor, "b v 4 4"],
-                        intrinsics: Float[Tensor, "b v 3 3"],
-                        target_extrinsics: Float[Tensor, "b n 4 4"],
-                        target_intrinsics: Float[Tensor, "b n 3 3"],
-                        target_near: Float[Tensor, "b n"], target_far: Float[Tensor, "b n"],
-                        depth: DepthOutputs | None = None) -> tuple[dict, dict, dict]:
+    def _target_weights(self, images: Float[Tensor, "b v 3 h w"], context: Cameras,
+                        targets: Cameras, depth: DepthOutputs | None = None
+                        ) -> tuple[dict, dict, dict]:
         """The generated layers' weights: ``W`` (layer -> (weight, bias)) from the
         view-agnostic branch, ``Delta W`` (layer -> per-target low-rank factors) from the
         view-specific branch, and the branch's diagnostics (embedding, Proj's correlation
@@ -720,9 +716,9 @@ class UniqueSplat(nn.Module):
                 f = depth.features_fullres
                 b, v = images.shape[:2]
                 features = f.reshape(v, b, *f.shape[1:]).transpose(0, 1)
-            e_s, proj_aux = self.view_embedding(images, extrinsics, intrinsics,
-                                                target_extrinsics, target_intrinsics,
-                                                target_near, target_far, features)
+            e_s, proj_aux = self.view_embedding(images, context.extrinsics, context.intrinsics,
+                                                targets.extrinsics, targets.intrinsics,
+                                                targets.near, targets.far, features)
             aux.update(embedding=e_s, correlation=proj_aux["correlation"],
                        weights=proj_aux["weights"])
             deltas = {s.name: d for s, d in zip(self.specific_specs,
@@ -730,7 +726,7 @@ class UniqueSplat(nn.Module):
         weights = dict(zip(self.cfg.target_layers, self.agnostic_weights()))
         return weights, deltas, aux
 
-    def _run_heads(self, depth, weights: dict, deltas: dict, near, far, v: int, b: int,
+    def _run_heads(self, depth, weights: dict, deltas: dict, context: Cameras, v: int, b: int,
                    nb: int):
         """The depth predictor's two heads (``to_gaussians``, ``to_disparity``) with the
         generated weights, for ``nb`` target batches (1: the same for every target), and
@@ -754,21 +750,20 @@ class UniqueSplat(nn.Module):
         raw = adapter_layout(raw, pt, v, b, nb)  # [(B nb), V, HW, C]
         disp, pt = head("to_disparity", depth.refine_out)
         # scene-level tensors repeated per target batch entry
-        near_t, far_t = near.repeat_interleave(nb, 0), far.repeat_interleave(nb, 0)
+        near_t, far_t = (context.near.repeat_interleave(nb, 0),
+                         context.far.repeat_interleave(nb, 0))
         disp_full = vb_layout(depth.disp_full, False, v, b, nb)
         depths, densities = dp.depths_from(vb_layout(disp, pt, v, b, nb), disp_full,
                                            near_t, far_t)
         return dataclasses.replace(depth, raw_gaussians=raw, depths=depths,
                                    densities=densities)
 
-    def _gaussians_per_target(self, depth_out, extrinsics: Float[Tensor, "b v 4 4"],
-                              intrinsics: Float[Tensor, "b v 3 3"],
-                              image_shape: tuple[int, int], global_step: int, b: int, n: int,
-                              nb: int) -> Gaussians:
+    def _gaussians_per_target(self, depth_out, context: Cameras, image_shape: tuple[int, int],
+                              global_step: int, b: int, n: int, nb: int) -> Gaussians:
         """Gaussians [(B N), G, ...] from the heads' outputs: one set per target batch
         entry, expanded to every target where they do not depend on it (``nb == 1``)."""
-        ext_t = extrinsics.repeat_interleave(nb, 0)
-        int_t = intrinsics.repeat_interleave(nb, 0)
+        ext_t = context.extrinsics.repeat_interleave(nb, 0)
+        int_t = context.intrinsics.repeat_interleave(nb, 0)
         gaussians = self.primary.gaussians_from(depth_out, ext_t, int_t, image_shape,
                                                 global_step)
         if nb == 1 and n > 1:  # the same Gaussians for every target
