@@ -60,7 +60,7 @@ def test_an_mvsplat_lightning_file_loads_as_the_paper_preset_baseline(tmp_path):
 
 def test_a_name_that_is_no_file_lists_the_shipped_ones(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"shipped models \(usplat models; --all for "
-                       r"study/ ones\): full-64, baseline-64"):
+                       r"study/ ones\): full-64, full-128, baseline-64"):
         load("tiny_fulll")
     with pytest.raises(FileNotFoundError, match="missing.ckpt' does not exist"):
         load(tmp_path / "missing.ckpt")

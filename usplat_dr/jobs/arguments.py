@@ -12,6 +12,7 @@ from usplat_dr.data.chunks import stored_image_shape
 from usplat_dr.data.user_views import UserViews, context_views, crop_advice, read_cameras
 from usplat_dr.evaluation import load_example, synthetic_indices
 from usplat_dr.geometry.plane_sweep import near_far_from_sweep
+from usplat_dr.model.auto_budget import make_budget
 from usplat_dr.model.budget import RANKINGS
 from usplat_dr.training.checkpoints import depth_range_warning, training_image_shape
 from usplat_dr.training.loader import load
@@ -183,8 +184,6 @@ def budget_from_args(args: argparse.Namespace):
     ``GaussianBudget`` or an ``AutoBudget`` (``make_budget``); the one place ``eval``,
     ``render`` and ``export-ply`` build it. Their mistakes are usage errors here
     (``check_budget_arguments``)."""
-    from usplat_dr.model.auto_budget import make_budget
-
     check_budget_arguments(args)
     return make_budget(args.gaussians, args.rank_by, args.tolerance)
 
