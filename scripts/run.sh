@@ -107,13 +107,16 @@ setup() { ensure_python; ensure_libllvm; ensure_venv; }
 # installed), adds the wheels found in .whl/ (drjit's, jaxtyping's, ...: pip download them
 # where there is a network) to a private site folder, and leaves everything else alone.
 gpu_env() {
-    local site=/tmp/usplat-gpu-site
+    # a private folder (mktemp -d: made anew, the user's own, mode 700): a fixed path in /tmp
+    # would put whatever anyone planted there first on the import path
+    local site=""
     if ls "$ROOT"/.whl/*.whl >/dev/null 2>&1; then
+        site=$(mktemp -d "${TMPDIR:-/tmp}/usplat-gpu-site.XXXXXX")
         say "installing the wheels in .whl/ into $site"
         "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
             --upgrade --target "$site" "$ROOT"/.whl/*.whl >&2
     fi
-    export PYTHONPATH="$site:$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+    export PYTHONPATH="${site:+$site:}$ROOT${PYTHONPATH:+:$PYTHONPATH}"
     if ! "$PYTHON" -c 'import torch, sys; sys.exit(not torch.cuda.is_available())'; then
         say "torch sees no CUDA GPU here: $command needs a CUDA machine with torch installed"
         exit 1

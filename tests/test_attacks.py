@@ -556,7 +556,9 @@ def test_counts_and_sizes_in_camera_files_are_bounded(tmp_path, capsys, monkeypa
     for i, (kind, (cams, imgs)) in enumerate(cases.items()):
         folder = binary_model(tmp_path / f"b{i}", cams, imgs)
         err = run_import(["--colmap", str(folder)], tmp_path / f"bout{i}", capsys, monkeypatch)
-        assert "ends early" in err or "UTF-8" in err or "NUL" in err, (kind, err)
+        # (a count past MAX_CAMERAS is refused by the count itself, before any record)
+        assert ("ends early" in err or "UTF-8" in err or "NUL" in err
+                or "more than the 100,000 a camera file may hold" in err), (kind, err)
         COUNTS[(BOUNDS, "error naming the file")] += 1
     # sparse files past the bounds: refused from their size, before a byte is read
     folder = binary_model(tmp_path / "sparse", one_camera, image + struct.pack("<Q", 0))
@@ -587,11 +589,18 @@ def test_render_images_decodes_through_the_same_door(tmp_path, monkeypatch):
     with deadline(HANG_S), pytest.raises(ValueError, match="cannot be decoded"):
         context_views(images, read_cameras(folder), (64, 64))
     COUNTS[(DECODING, "error naming the file")] += 1
-    # a valid 1 x 4,000,000 PNG (a few KB): covering 64x64 would ask for 64 x 256M pixels
+    # a camera 4,000,000 pixels wide: refused where the camera file is read, naming it
+    folder = own_colmap(tmp_path / "wide", eps, size=(4_000_000, 1))
+    with deadline(HANG_S), pytest.raises(ValueError, match=r"cameras.txt:1: the image size "
+                                                           r"must be whole pixels"):
+        read_cameras(folder)
+    COUNTS[(BOUNDS, "error naming the file")] += 1
+    # a valid 1 x 65,536 PNG (a few KB), the widest camera allowed: covering 64x64 would ask
+    # for 64 x 4M pixels
     buf = io.BytesIO()
-    Image.new("RGB", (4_000_000, 1)).save(buf, format="PNG")
-    folder = own_colmap(tmp_path / "long", buf.getvalue(), size=(4_000_000, 1))
-    Image.new("RGB", (4_000_000, 1)).save(folder / "images" / "b.png")
+    Image.new("RGB", (65_536, 1)).save(buf, format="PNG")
+    folder = own_colmap(tmp_path / "long", buf.getvalue(), size=(65_536, 1))
+    Image.new("RGB", (65_536, 1)).save(folder / "images" / "b.png")
     images = [folder / "images" / "a.png", folder / "images" / "b.png"]
     with deadline(HANG_S), pytest.raises(ValueError, match="resized"):
         context_views(images, read_cameras(folder), (64, 64))
@@ -655,8 +664,11 @@ def nerfstudio_scene(folder: Path, top: dict | None = None, frame: dict | None =
 
 
 @pytest.mark.parametrize("case, top, frame, needle", [
-    ("zero focal length", {"fl_x": 0}, None, "positive size and focal length"),
-    ("infinite focal length", {"fl_x": 1e400}, None, "must be finite"),
+    ("zero focal length", {"fl_x": 0}, None, "the focal lengths must be in (0, 1e+06]"),
+    ("infinite focal length", {"fl_x": 1e400}, None, "the focal lengths must be in (0, 1e+06]"),
+    ("focal length of 1e300 pixels", {"fl_x": 1e300}, None, "the focal lengths must be in"),
+    ("a size of 1e300 pixels", {"w": 1e300, "h": 1e300}, None,
+     "the image size must be whole pixels in 1..65,536"),
     ("NaN centre", {"cx": float("nan")}, None, "must be finite"),
     ("width of text", {"w": "abc"}, None, "invalid literal"),
     ("NaN pose", None, {"transform_matrix": [[float("nan")] * 4] * 4}, "not finite"),
@@ -675,6 +687,36 @@ def test_absurd_cameras_end_in_one_line_naming_the_frame(tmp_path, capsys, monke
     err = run_import(["--nerfstudio", str(folder)], tmp_path / "out", capsys, monkeypatch)
     assert needle in err and "transforms.json frame" in err, (case, err)
     COUNTS[(SKIPS, "error naming the file")] += 1
+
+
+def test_one_image_named_by_two_frames_or_a_million_frames_are_refused(tmp_path, capsys,
+                                                                        monkeypatch):
+    folder = nerfstudio_scene(tmp_path / "twice", frame={"file_path": "./b.png"})
+    err = run_import(["--nerfstudio", str(folder)], tmp_path / "out", capsys, monkeypatch)
+    assert "frames name the image" in err and "b.png twice" in err, err
+    COUNTS[(SKIPS, "error naming the file")] += 1
+    folder = nerfstudio_scene(tmp_path / "million")
+    meta = json.loads((folder / "transforms.json").read_text())
+    meta["frames"] = meta["frames"][:1] * 1_000_000  # one image, a million times
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    err = run_import(["--nerfstudio", str(folder)], tmp_path / "out2", capsys, monkeypatch)
+    assert "declares 1,000,000 frames, more than the 100,000" in err, err
+    COUNTS[(BOUNDS, "error naming the file")] += 1
+
+
+def test_a_shipped_name_is_never_a_file_of_that_name_here(tmp_path, monkeypatch, caplog):
+    # garbage named like a shipped model in the current folder: the name still means the
+    # shipped file (said); the file is reached only as a path
+    from usplat_dr.training.registry import resolve_checkpoint, shipped_models
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("full-64", "baseline-64", "tiny_baseline_128"):
+        (tmp_path / name).write_bytes(b"not a checkpoint")
+        expected = next(m.file for m in shipped_models().values()
+                        if name == m.name or name in m.old_names)
+        assert resolve_checkpoint(name) == expected
+        assert resolve_checkpoint(f"./{name}").resolve() == tmp_path / name
+        COUNTS[(READS, "error naming the file")] += 1
 
 
 @pytest.mark.parametrize("qvec", ["0 0 0 0", "nan 0 0 0", "1 inf 0 0"])

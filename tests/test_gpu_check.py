@@ -46,3 +46,29 @@ def test_gpu_check_benchmark_runs_on_the_cpu(command):
     # each prints its table: the rasteriser's 16x16 row, UniqueSplat's (c)/(a) line
     expected = "| 16x16 |" if "rasterizer" in command[0] else "(c) full"
     assert expected in done.stdout, done.stdout[-3000:]
+
+
+def test_the_gpu_commands_put_no_shared_folder_on_the_import_path(tmp_path):
+    # a torch.py planted in the fixed /tmp/usplat-gpu-site (the folder the GPU commands once
+    # put first on PYTHONPATH, writable by anyone on the machine) must not run; gpu-check then
+    # stops at its own check (no CUDA here)
+    planted = Path("/tmp/usplat-gpu-site")
+    made = not planted.exists()
+    if not made and not (planted / "torch.py").exists():
+        pytest.skip("/tmp/usplat-gpu-site exists already (not ours to write into)")
+    marker = tmp_path / "planted_module_ran"
+    try:
+        planted.mkdir(exist_ok=True)
+        (planted / "torch.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n"
+                                          "raise SystemExit(0)\n")
+        done = subprocess.run(["bash", str(ROOT / "scripts" / "run.sh"), "gpu-check",
+                               str(tmp_path / "out")], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=120, check=False,
+                              env={"PATH": "/usr/bin:/bin", "PYTHON": sys.executable,
+                                   "HOME": str(tmp_path)})
+    finally:
+        if made:
+            (planted / "torch.py").unlink(missing_ok=True)
+            planted.rmdir()
+    assert not marker.exists(), "a module planted in /tmp/usplat-gpu-site ran"
+    assert done.returncode == 1 and "torch sees no CUDA GPU here" in done.stderr + done.stdout

@@ -48,18 +48,19 @@ def configure() -> str | None:
     if choice == "off":
         outcome = f"libgomp's default ({SPIN_ENV_VAR}=off)"
         return None
+    if not choice.isdigit():
+        # at import a ValueError would be a traceback in every program that imports us; a
+        # tuning knob set wrong leaves libgomp's default, said by a warning and by doctor
+        outcome = (f"not set: {SPIN_ENV_VAR}={os.environ[SPIN_ENV_VAR]!r} is not a "
+                   f"non-negative integer or 'off' (libgomp's default is used; e.g. "
+                   f"{SPIN_ENV_VAR}={DEFAULT_SPIN})")
+        warnings.warn(outcome, stacklevel=3)
+        return None
     if "torch" in sys.modules:  # too late: torch (and libgomp) already loaded
         outcome = "not set by usplat_dr: torch was imported before it"
         return None
     if "GOMP_SPINCOUNT" in os.environ or "OMP_WAIT_POLICY" in os.environ:
         outcome = "set outside usplat_dr (it wins)"
-        return None
-    if not choice.isdigit():
-        # at import a ValueError would be a traceback in every program that imports us; a
-        # tuning knob set wrong leaves libgomp's default, said by a warning and by doctor
-        outcome = (f"not set: {SPIN_ENV_VAR}={os.environ[SPIN_ENV_VAR]!r} is not a "
-                   f"non-negative integer or 'off' (libgomp's default is used)")
-        warnings.warn(outcome, stacklevel=3)
         return None
     os.environ["GOMP_SPINCOUNT"] = choice
     outcome = f"set by usplat_dr ({SPIN_ENV_VAR}, default {DEFAULT_SPIN})"

@@ -3,6 +3,7 @@ the sets, packs them where gpu_train.sh looks for them, keeps what it rendered f
 call, and refuses a carry over the limit."""
 
 import io
+import json
 import lzma
 import os
 import subprocess
@@ -47,3 +48,31 @@ def test_the_gpu_sets_are_rendered_packed_and_weighed(tmp_path):
     again = prepare(LIMIT_MB="1")  # the sets are kept; a 1 MB limit is below the tracked files
     assert "is there" in again.stdout, again.stdout[-2000:]
     assert again.returncode == 1 and "too much to carry" in again.stdout
+
+
+def test_it_deletes_nothing_it_did_not_make(tmp_path):
+    # a held-out set of another size where the script would render, and a folder of the
+    # user's where it would pack: both refused by name, both left as they were, before any
+    # rendering
+    data = tmp_path / "data"
+    other = data / "test5000"
+    (other / "test").mkdir(parents=True)
+    (other / "synth.json").write_text(json.dumps({"stage": "test", "scenes": 60, "seed": 5000,
+                                                  "frames": 24, "resolution": [128, 128]}))
+    mine = tmp_path / "my_results"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    env = {**os.environ, "PYTHON": sys.executable, "SIZE": "32", "TRAIN_SCENES": "1",
+           "HELDOUT_SCENES": "1", "FRAMES": "10", "WHEEL": "0", "DATA": str(data)}
+
+    def prepare(**more):
+        return subprocess.run(["bash", str(SCRIPT)], env={**env, **more}, capture_output=True,
+                              text=True, timeout=120, check=False)
+
+    proc = prepare(GPUDATA=str(mine))
+    assert proc.returncode == 2 and f"GPUDATA {mine} exists and is not a pack" in proc.stderr
+    assert (mine / "notes.txt").read_text() == "keep me"
+    proc = prepare(GPUDATA=str(tmp_path / "pack"))
+    assert proc.returncode == 2 and f"{other} holds another set than this one" in proc.stderr
+    assert (other / "synth.json").is_file() and (other / "test").is_dir()
+    assert not (tmp_path / "pack").exists()

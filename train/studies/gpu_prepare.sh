@@ -10,7 +10,8 @@
 #
 # Environment: SIZE (default 256), DATA (where the sets are rendered, default outputs/big256;
 # a set already there with the same stage, scenes, seed, size and frames is kept), GPUDATA
-# (default .gpudata256, made anew), TRAIN_SCENES and HELDOUT_SCENES (default 12 and 8 packed,
+# (default .gpudata256, made anew; an existing folder it did not make is refused, as is a set
+# in DATA other than the one asked for: nothing it did not write is deleted), TRAIN_SCENES and HELDOUT_SCENES (default 12 and 8 packed,
 # of the 16 and 12 rendered), FRAMES (default 24), JOBS (rendering processes, default 2),
 # SYNTH_ARGS (more `usplat synth` arguments), WHEEL (default 1; 0: no wheel, as the CPU test
 # does), WHEEL_PYTHON (the GPU machine's Python, default 3.12), LIMIT_MB (what may travel,
@@ -35,6 +36,16 @@ if [ "$SIZE" != 256 ]; then  # a small trial (the CPU test) renders only what it
     RENDER_TRAIN=$TRAIN_SCENES; RENDER_HELDOUT=$HELDOUT_SCENES
 fi
 
+# Only folders this script made are replaced (they hold its mark); any other is refused.
+MARK=.gpu-prepare
+for folder in "$GPUDATA" "$GPUDATA.new"; do
+    if [ -e "$folder" ] && [ ! -f "$folder/$MARK" ]; then
+        echo "gpu-prepare: GPUDATA $folder exists and is not a pack gpu-prepare made (no" \
+            "$MARK in it): move it away, or set GPUDATA to a new folder" >&2
+        exit 2
+    fi
+done
+
 render() {  # FOLDER STAGE SCENES SEED: usplat synth, unless FOLDER's synth.json (written
     local folder=$1 stage=$2 scenes=$3 seed=$4  # last) records this set already
     if $PY - "$folder" "$stage" "$scenes" "$seed" "$SIZE" "$FRAMES" <<'EOF'
@@ -56,7 +67,12 @@ EOF
         echo "gpu-prepare: $folder is there ($stage, $scenes scenes, seed $seed, ${SIZE}x$SIZE)"
         return
     fi
-    rm -rf "$folder"
+    if [ -e "$folder" ]; then  # another set (another size, seed or count): never deleted here
+        echo "gpu-prepare: $folder holds another set than this one ($stage, $scenes scenes," \
+            "seed $seed, ${SIZE}x$SIZE, $FRAMES frames): move it away, or set DATA to" \
+            "another folder" >&2
+        exit 2
+    fi
     $PY -m usplat_dr synth --out "$folder" --stage "$stage" --scenes "$scenes" \
         --frames "$FRAMES" --image-shape "$SIZE" "$SIZE" --seed "$seed" --jobs "$JOBS" \
         ${SYNTH_ARGS:-}
@@ -67,6 +83,8 @@ render "$DATA/train$RENDER_TRAIN" train "$RENDER_TRAIN" 100
 
 # packed anew into a sibling folder, then swapped in: an interrupted run leaves the old one
 rm -rf "$GPUDATA.new"
+mkdir -p "$GPUDATA.new"
+echo "made by train/studies/gpu_prepare.sh" > "$GPUDATA.new/$MARK"
 $PY train/studies/carry_sets.py pack --out "$GPUDATA.new" --jpeg-quality 90 --chroma 420 \
     "train=$DATA/train$RENDER_TRAIN/train:$TRAIN_SCENES:jpeg"
 $PY train/studies/carry_sets.py pack --out "$GPUDATA.new" \

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from usplat_dr.io import torch_save, write_json
 from usplat_dr.io.checkpoint_files import check_torch_archive
-from usplat_dr.io.user_files import IMAGE_FORMATS, MAX_IMAGE_PIXELS, open_image, rgb8
+from usplat_dr.io.user_files import IMAGE_FORMATS, MAX_IMAGE_PIXELS, open_image, read_bytes, rgb8
 
 __all__ = ["IMAGE_FORMATS", "MAX_IMAGE_PIXELS"]  # (re-exported: the data layer's readers)
 
@@ -272,7 +272,8 @@ def stored_image_shape(root: str | os.PathLike, stage: str = "test") -> tuple[in
     """
     meta = metadata_folder(root, stage) / "synth.json"
     try:
-        shape = json.loads(meta.read_text(encoding="utf-8"))["resolution"]
+        # a regular file of at most 1 MiB (a FIFO or a link to /dev/zero there is refused)
+        shape = json.loads(read_bytes(meta, "synth.json", 2**20).decode("utf-8"))["resolution"]
         if (isinstance(shape, list) and len(shape) == 2
                 and all(isinstance(n, int) and n > 0 for n in shape)):
             return int(shape[0]), int(shape[1])

@@ -43,7 +43,7 @@ from PIL import Image
 from usplat_dr.data.chunks import ChunkWriter, encode_image, matrices_to_cameras, metadata_folder
 from usplat_dr.io import write_json
 from usplat_dr.io.atomic import remove_temporaries_of
-from usplat_dr.io.user_files import check_resize, inside, read_bytes, read_image
+from usplat_dr.io.user_files import check_resize, inside, read_bytes, read_image, regular_file
 
 log = logging.getLogger(__name__)
 
@@ -115,13 +115,68 @@ def colmap_pinhole(cam: ColmapCamera, where: str, ignore_distortion: bool = Fals
     return pinhole
 
 
-def _text_lines(path: Path) -> list[str]:
+#: Cameras, images or frames one camera file may describe: more is a damaged or hostile file
+#: (a capture of 100,000 photos is far past what two-view models read), refused before any
+#: per-record work.
+MAX_CAMERAS = 100_000
+#: The longest line a COLMAP text file may hold (an images.txt POINTS2D line of 1,000,000
+#: keypoints is about 40 MB).
+MAX_LINE_BYTES = 64 * 2**20
+#: Image sizes and focal lengths a camera may have, in pixels.
+MAX_IMAGE_SIDE = 65_536
+MAX_FOCAL = 1e6
+
+
+def check_camera(width, height, fx: float, fy: float, cx: float, cy: float, where: str
+                 ) -> None:
+    """A camera read from a file: a whole-pixel size in 1..``MAX_IMAGE_SIDE``, focal lengths
+    in (0, ``MAX_FOCAL``] and a finite principal point; else a ``ValueError`` naming
+    ``where`` (the camera file and camera).
+
+    Examples:
+        >>> check_camera(1e300, 1e300, 500.0, 500.0, 320.0, 240.0, "t.json")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        ValueError: t.json: the image size must be whole pixels in 1..65,536, got 1e+300 x ...
+    """
+    sizes_ok = all(isinstance(s, (int, float, np.integer, np.floating)) and math.isfinite(s)
+                   and float(s).is_integer() and 1 <= s <= MAX_IMAGE_SIDE
+                   for s in (width, height))
+    if not sizes_ok:
+        raise ValueError(f"{where}: the image size must be whole pixels in 1..{MAX_IMAGE_SIDE:,}, "
+                         f"got {width} x {height}")
+    if not all(math.isfinite(f) and 0 < f <= MAX_FOCAL for f in (fx, fy)):
+        raise ValueError(f"{where}: the focal lengths must be in (0, {MAX_FOCAL:.0e}] pixels, "
+                         f"got fx {fx}, fy {fy}")
+    if not (math.isfinite(cx) and math.isfinite(cy)):
+        raise ValueError(f"{where}: the principal point must be finite, got {cx}, {cy}")
+
+
+def check_count(count: int, path: Path, what: str) -> int:
+    """``count`` records declared by ``path``, refused past ``MAX_CAMERAS``."""
+    if count > MAX_CAMERAS:
+        raise ValueError(f"{path} declares {count:,} {what}, more than the {MAX_CAMERAS:,} a "
+                         f"camera file may hold: a damaged file, or keep every k-th")
+    return count
+
+
+def _text_lines(path: Path):
     """The lines of a COLMAP text file (comments and blank lines kept: images.txt pairs
-    lines, and an image with no 2D points has an empty second line)."""
-    try:
-        return read_bytes(path, "COLMAP file").decode("utf-8").splitlines()
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path} is not UTF-8 text ({e}): not a COLMAP text file") from None
+    lines, and an image with no 2D points has an empty second line), streamed: each at most
+    ``MAX_LINE_BYTES``, so a large file of one endless line stops at the first."""
+    regular_file(path, "COLMAP file")
+    with open(path, "rb") as f:
+        n = 0
+        while line := f.readline(MAX_LINE_BYTES + 1):
+            n += 1
+            if len(line) > MAX_LINE_BYTES:
+                raise ValueError(f"{path}:{n}: a line longer than {MAX_LINE_BYTES:,} bytes: not "
+                                 f"a COLMAP text file")
+            try:
+                yield line.decode("utf-8").rstrip("\r\n")
+            except UnicodeDecodeError as e:
+                raise ValueError(f"{path}:{n} is not UTF-8 text ({e}): not a COLMAP text "
+                                 f"file") from None
 
 
 def read_colmap_cameras_text(path: Path) -> dict[int, ColmapCamera]:
@@ -139,9 +194,24 @@ def read_colmap_cameras_text(path: Path) -> dict[int, ColmapCamera]:
         if len(e) != 4 + expected:
             raise ValueError(f"{path}:{n}: camera model {model} needs {expected} parameters, "
                              f"got {len(e) - 4}")
-        cameras[int(e[0])] = ColmapCamera(model, int(e[2]), int(e[3]),
-                                          np.array([float(x) for x in e[4:]]))
+        camera = ColmapCamera(model, int(e[2]), int(e[3]), np.array([float(x) for x in e[4:]]))
+        _check_colmap_camera(camera, f"{path}:{n}")
+        cameras[int(e[0])] = camera
+        check_count(len(cameras), path, "cameras")
     return cameras
+
+
+def _check_colmap_camera(cam: ColmapCamera, where: str) -> None:
+    """``check_camera`` on a COLMAP camera's size and pinhole part (where it is read)."""
+    p = cam.params
+    n = COLMAP_MODEL_IDS[cam.model][1]
+    if len(p) != n or not np.all(np.isfinite(p)):
+        raise ValueError(f"{where}: camera model {cam.model} needs {n} finite parameters, got "
+                         f"{p.tolist()}")
+    two_focals = cam.model in ("PINHOLE", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE",
+                               "FOV", "THIN_PRISM_FISHEYE")
+    fx, fy, cx, cy = (p[0], p[1], p[2], p[3]) if two_focals else (p[0], p[0], p[1], p[2])
+    check_camera(cam.width, cam.height, float(fx), float(fy), float(cx), float(cy), where)
 
 
 def read_colmap_images_text(path: Path) -> dict[int, tuple[np.ndarray, np.ndarray, int, str]]:
@@ -159,6 +229,7 @@ def read_colmap_images_text(path: Path) -> dict[int, tuple[np.ndarray, np.ndarra
         images[int(e[0])] = (np.array([float(x) for x in e[1:5]]),
                              np.array([float(x) for x in e[5:8]]), int(e[8]),
                              " ".join(e[9:]))
+        check_count(len(images), path, "images")
         next(lines, None)  # the POINTS2D line (possibly empty)
     return images
 
@@ -171,53 +242,89 @@ def read_colmap_points_text(path: Path) -> np.ndarray:
 
 
 class _Reader:
-    """Little-endian struct reads from a COLMAP .bin file, with an error naming the file when
-    it ends early."""
+    """Little-endian struct reads from a COLMAP .bin file, streamed from the file (never more
+    than a record at a time in memory), with an error naming the file when it ends early or
+    holds bytes after its last record. A context manager."""
+
+    #: The longest image name read (COLMAP's are file names).
+    MAX_NAME = 4096
 
     def __init__(self, path: Path):
-        self.path, self.data, self.pos = path, read_bytes(path, "COLMAP file"), 0
+        self.path = regular_file(path, "COLMAP file")
+        self.file = open(self.path, "rb")  # noqa: SIM115 (closed by __exit__)
+        self.size, self.pos = os.fstat(self.file.fileno()).st_size, 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.file.close()
+        return False
+
+    def _early(self, what: str) -> ValueError:
+        return ValueError(f"{self.path}: ends early at byte {self.pos} ({what}; a truncated or "
+                          "damaged file: export the model again with colmap model_converter)")
 
     def read(self, fmt: str) -> tuple:
         size = struct.calcsize("<" + fmt)
-        if self.pos + size > len(self.data):
-            raise ValueError(f"{self.path}: ends early at byte {self.pos} (a truncated file; "
-                             "export the model again with colmap model_converter)")
-        out = struct.unpack_from("<" + fmt, self.data, self.pos)
+        data = self.file.read(size) if self.pos + size <= self.size else b""
+        if len(data) != size:
+            raise self._early("a truncated file")
         self.pos += size
-        return out
+        return struct.unpack("<" + fmt, data)
+
+    def count(self, what: str) -> int:
+        """A uint64 record count, refused past ``MAX_CAMERAS``."""
+        return check_count(self.read("Q")[0], self.path, what)
 
     def skip(self, nbytes: int) -> None:
-        if self.pos + nbytes > len(self.data):  # (a count read from the file may claim 2^64)
-            raise ValueError(f"{self.path}: ends early at byte {self.pos} (a record claims "
-                             f"{nbytes:,} more bytes; a truncated or damaged file: export the "
-                             "model again with colmap model_converter)")
+        if self.pos + nbytes > self.size:  # (a count read from the file may claim 2^64)
+            raise self._early(f"a record claims {nbytes:,} more bytes")
         self.pos += nbytes
+        self.file.seek(self.pos)
 
     def name(self) -> str:
-        end = self.data.find(b"\0", self.pos)
-        if end < 0:
-            raise ValueError(f"{self.path}: an image name has no terminating NUL (truncated)")
+        raw = bytearray()
+        while (byte := self.file.read(1)) != b"\0":
+            if not byte:
+                raise ValueError(f"{self.path}: an image name has no terminating NUL "
+                                 f"(truncated)")
+            raw += byte
+            if len(raw) > self.MAX_NAME:
+                raise ValueError(f"{self.path}: an image name at byte {self.pos} is longer "
+                                 f"than {self.MAX_NAME} bytes (a damaged file)")
         try:
-            out = self.data[self.pos:end].decode("utf-8")
+            out = raw.decode("utf-8")
         except UnicodeDecodeError:
             raise ValueError(f"{self.path}: an image name at byte {self.pos} is not UTF-8 (a "
                              "damaged file)") from None
-        self.pos = end + 1
+        self.pos += len(raw) + 1
         return out
+
+    def end(self) -> None:
+        """The file holds nothing after its last record (a sparse or padded file would
+        otherwise pass as a short model)."""
+        if self.pos != self.size:
+            raise ValueError(f"{self.path} holds {self.size - self.pos:,} bytes after its last "
+                             f"record (byte {self.pos}): a damaged file; export the model "
+                             f"again with colmap model_converter")
 
 
 def read_colmap_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
     """cameras.bin: uint64 count; per camera int32 id, int32 model id, uint64 width, uint64
     height, then the model's float64 parameters."""
-    r = _Reader(path)
     cameras = {}
-    for _ in range(r.read("Q")[0]):
-        cam_id, model_id, width, height = r.read("iiQQ")
-        if model_id not in COLMAP_MODELS:
-            raise ValueError(f"{path}: camera {cam_id} has unknown model id {model_id} "
-                             f"(known: 0-10): {UNDISTORT}")
-        model, n = COLMAP_MODELS[model_id]
-        cameras[cam_id] = ColmapCamera(model, width, height, np.array(r.read(f"{n}d")))
+    with _Reader(path) as r:
+        for _ in range(r.count("cameras")):
+            cam_id, model_id, width, height = r.read("iiQQ")
+            if model_id not in COLMAP_MODELS:
+                raise ValueError(f"{path}: camera {cam_id} has unknown model id {model_id} "
+                                 f"(known: 0-10): {UNDISTORT}")
+            model, n = COLMAP_MODELS[model_id]
+            camera = ColmapCamera(model, width, height, np.array(r.read(f"{n}d")))
+            _check_colmap_camera(camera, f"{path} camera {cam_id}")
+            cameras[cam_id] = camera
+        r.end()
     return cameras
 
 
@@ -225,24 +332,35 @@ def read_colmap_images_binary(path: Path) -> dict[int, tuple[np.ndarray, np.ndar
     """images.bin: uint64 count; per image int32 id, float64 qvec (w, x, y, z), float64 tvec,
     int32 camera id, NUL-terminated name, uint64 point count, then (float64 x, float64 y,
     int64 point id) per 2D point (skipped)."""
-    r = _Reader(path)
     images = {}
-    for _ in range(r.read("Q")[0]):
-        image_id, *qt, cam_id = r.read("idddddddi")
-        name = r.name()
-        r.skip(r.read("Q")[0] * struct.calcsize("<ddq"))
-        images[image_id] = (np.array(qt[:4]), np.array(qt[4:]), cam_id, name)
+    with _Reader(path) as r:
+        for _ in range(r.count("images")):
+            image_id, *qt, cam_id = r.read("idddddddi")
+            name = r.name()
+            r.skip(r.read("Q")[0] * struct.calcsize("<ddq"))
+            images[image_id] = (np.array(qt[:4]), np.array(qt[4:]), cam_id, name)
+        r.end()
     return images
+
+
+#: 3D points a points3D file may hold (a large COLMAP reconstruction has a few million).
+MAX_POINTS = 50_000_000
 
 
 def read_colmap_points_binary(path: Path) -> np.ndarray:
     """points3D.bin: uint64 count; per point uint64 id, float64 xyz, uint8 rgb, float64 error,
     uint64 track length, then (int32 image id, int32 point2D index) per track element."""
-    r = _Reader(path)
     xyz = []
-    for _ in range(r.read("Q")[0]):
-        xyz.append(r.read("QdddBBBd")[1:4])
-        r.skip(r.read("Q")[0] * struct.calcsize("<ii"))
+    with _Reader(path) as r:
+        count = r.read("Q")[0]
+        record = struct.calcsize("<QdddBBBdQ")
+        if count > MAX_POINTS or count * record > r.size - r.pos:
+            raise ValueError(f"{path} declares {count:,} points, more than its "
+                             f"{r.size:,} bytes (or {MAX_POINTS:,}) can hold: a damaged file")
+        for _ in range(count):
+            xyz.append(r.read("QdddBBBd")[1:4])
+            r.skip(r.read("Q")[0] * struct.calcsize("<ii"))
+        r.end()
     return np.array(xyz, dtype=np.float64).reshape(-1, 3)
 
 
@@ -321,6 +439,7 @@ def read_colmap(folder: str | os.PathLike, images: str | os.PathLike | None = No
             raise ValueError(f"{images_file}: image {name!r}: {e}") from None
         shapes.append((cam.height, cam.width))
         paths.append(inside(image_dir, name, f"{images_file}: image name"))
+    refuse_duplicates(paths, images_file, "images")
     return ImportedScene(paths, np.stack(c2w), np.stack(intr), np.array(shapes), points, model)
 
 
@@ -417,6 +536,10 @@ def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False,
     if "ply_file_path" in meta:
         log.info("%s: the point cloud %s is not read: near/far need --near and --far", path,
                  meta["ply_file_path"])
+    check_count(len(meta["frames"]), path, "frames")
+    if not all(isinstance(f, dict) for f in meta["frames"]):
+        raise ValueError(f"{path}: every frame must be an object with 'file_path' and "
+                         f"'transform_matrix'")
     frames = sorted(meta["frames"], key=lambda f: str(f.get("file_path", "")))
     c2w, intr, shapes, paths = [], [], [], []
     for i, frame in enumerate(frames):
@@ -448,14 +571,28 @@ def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False,
                 m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]])
             if m.shape != (4, 4):
                 raise ValueError(f"transform_matrix must be 4x4 (or 3x4), got {m.shape}")
+            cx, cy = float(get("cx", w / 2)), float(get("cy", h / 2))
+            check_camera(get("w"), get("h"), fx, fy, cx, cy, "the camera")
             c2w.append(rigid(m, "transform_matrix") @ OPENGL_TO_OPENCV)
-            intr.append(normalised_intrinsics(fx, fy, float(get("cx", w / 2)),
-                                              float(get("cy", h / 2)), w, h))
+            intr.append(normalised_intrinsics(fx, fy, cx, cy, w, h))
         except (TypeError, ValueError, OverflowError) as e:
             raise ValueError(f"{where}: {e}") from None
         shapes.append((h, w))
         paths.append(inside(folder, frame["file_path"], f"{where}: file_path"))
+    refuse_duplicates(paths, path, "frames")
     return ImportedScene(paths, np.stack(c2w), np.stack(intr), np.array(shapes), None, folder)
+
+
+def refuse_duplicates(paths: list[Path], source: Path, what: str) -> None:
+    """One image per camera: an image named by two of ``source``'s ``what`` (at two poses, or
+    twice at one) is refused, naming it."""
+    seen = {}
+    for path in paths:
+        key = os.path.normpath(path)
+        if key in seen:
+            raise ValueError(f"{source}: {what} name the image {path} twice: one image per "
+                             f"camera (remove the duplicate)")
+        seen[key] = path
 
 
 # ---- Writing a dataset root ----

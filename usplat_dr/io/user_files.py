@@ -60,11 +60,22 @@ def read_bytes(path: str | os.PathLike, what: str, max_bytes: int = MAX_DATA_BYT
     """The bytes of ``regular_file(path, what, max_bytes)``, read with the bound kept even if
     the file grows meanwhile."""
     path = regular_file(path, what, max_bytes)
+    blocks, total = [], 0
     with open(path, "rb") as f:
-        data = f.read(max_bytes + 1)
-    if len(data) > max_bytes:
-        raise ValueError(f"{what} {path} grew past {max_bytes:,} bytes while being read")
-    return data
+        # in blocks of what the file holds (at most READ_BLOCK): ``f.read(max_bytes)`` would
+        # ask for the maximum at once, which a memory limit refuses for a 10 kB file
+        expected = os.fstat(f.fileno()).st_size
+        while block := f.read(max(1, min(expected - total + 1, READ_BLOCK))):
+            total += len(block)
+            if total > max_bytes:
+                raise ValueError(f"{what} {path} grew past {max_bytes:,} bytes while being "
+                                 f"read")
+            blocks.append(block)
+    return b"".join(blocks)
+
+
+#: The most ``read_bytes`` asks of a file at once.
+READ_BLOCK = 16 * 2**20
 
 
 def sha256(path: str | os.PathLike, what: str, max_bytes: int = MAX_DATA_BYTES,

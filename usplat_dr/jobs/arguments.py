@@ -58,6 +58,31 @@ def at_least(minimum: int):
     return parse
 
 
+def between(minimum: int, maximum: int):
+    """An argparse ``type``: an int in ``minimum``..``maximum`` (a count that sizes work).
+
+    Examples:
+        >>> between(2, 2000)("60")
+        60
+        >>> between(2, 2000)("1000000")
+        Traceback (most recent call last):
+        ...
+        argparse.ArgumentTypeError: must be an integer in 2..2,000, got '1000000'
+    """
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or not minimum <= value <= maximum:
+            raise argparse.ArgumentTypeError(f"must be an integer in {minimum:,}..{maximum:,}, "
+                                             f"got {text!r}")
+        return value
+
+    parse.__name__ = f"integer in {minimum}..{maximum}"
+    return parse
+
+
 positive_int = at_least(1)
 non_negative_int = at_least(0)
 

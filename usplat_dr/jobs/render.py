@@ -28,7 +28,7 @@ from usplat_dr.io.video import write_video
 from usplat_dr.jobs.arguments import (
     add_example_arguments,
     add_own_views_arguments,
-    at_least,
+    between,
     budget_from_args,
     check_budget_arguments,
     fit_checkpoint,
@@ -48,8 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_own_views_arguments(p)
     p.add_argument("--path", default="orbit", help="the target cameras: 'orbit' (context 0 -> "
                    "1 -> 0, then a wobble around each) or a camera file like --cameras")
-    p.add_argument("--frames", type=at_least(2), default=60,
-                   help="frames of the orbit")
+    p.add_argument("--frames", type=between(2, MAX_PATH_CAMERAS), default=60,
+                   help=f"frames of the orbit (at most {MAX_PATH_CAMERAS:,}, as a --path file's "
+                   f"cameras)")
     p.add_argument("--out", type=out_folder, default="outputs/render/video",
                    help="output folder")
 
@@ -118,11 +119,16 @@ def targets(path: str, context_extrinsics: torch.Tensor, context_intrinsics: tor
             frames: int, image_shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """``--path``: the target cameras (extrinsics [N, 4, 4], intrinsics [N, 3, 3]): the orbit
     around the context cameras, seen with the first context camera's intrinsics, or the
-    cameras of a camera file."""
+    cameras of a camera file (at most ``MAX_PATH_CAMERAS``, for either source)."""
     if path == "orbit":
         e = camera_path(context_extrinsics.cpu(), frames).float()
         return e, context_intrinsics[:1].cpu().expand(len(e), 3, 3)
-    return target_cameras(read_cameras(path, what="--path"), image_shape)
+    e, k = target_cameras(read_cameras(path, what="--path"), image_shape)
+    if len(e) > MAX_PATH_CAMERAS:
+        raise ValueError(f"--path {path} holds {len(e):,} cameras (at most "
+                         f"{MAX_PATH_CAMERAS:,} frames): keep every k-th camera, or split the "
+                         f"file and render the parts")
+    return e, k
 
 
 #: Target cameras a ``--path`` file may hold: each is a frame (and, in (c), a set of Gaussians
@@ -140,10 +146,6 @@ def predict_own_views(model, args: argparse.Namespace) -> Prediction:
     views, near, far = own_views(args, model.trained_depth_range, Path(args.out) / "pose")
     te, tk = targets(args.path, views.extrinsics, views.intrinsics, args.frames,
                      tuple(views.images.shape[-2:]))
-    if len(te) > MAX_PATH_CAMERAS:
-        raise ValueError(f"--path {args.path} holds {len(te):,} cameras (at most "
-                         f"{MAX_PATH_CAMERAS:,} frames): keep every k-th camera, or split the "
-                         f"file and render the parts")
     return model.predict(views.images, intrinsics=views.intrinsics,
                          extrinsics=views.extrinsics, target_intrinsics=tk,
                          target_extrinsics=te, near=near, far=far, chunk=PATH_CHUNK,

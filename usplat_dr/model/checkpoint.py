@@ -65,8 +65,12 @@ def check_state_dict(module: nn.Module | dict, sd: dict[str, Tensor],
             more = f"\n    ... and {len(items) - 20} more" if len(items) > 20 else ""
             return f"\n  {len(items)} {name}:\n    {head}{more}" if items else ""
 
+        first = "; ".join(f"{name} {items[0]}" for name, items in (
+            ("first missing key", missing), ("first unexpected key", unexpected),
+            ("first shape mismatch", shapes)) if items)
         raise CheckpointMismatchError(
-            f"{what} does not match the network ({len(own)} keys expected, {len(sd)} given):"
+            f"{what} does not match the network ({len(own)} keys expected, {len(sd)} given; "
+            f"{first}):"
             + listing("missing keys", missing) + listing("unexpected keys", unexpected)
             + listing("shape mismatches", shapes)
             + "\n  (is the configuration the checkpoint's? MVSplat's RE10K/ACID/DTU checkpoints "
@@ -78,7 +82,9 @@ def load_mvsplat_state_dict(module: nn.Module, checkpoint, map_location="cpu",
     """Load an MVSplat checkpoint (path, Lightning dict or bare state dict) into ``module``
     strictly; returns ``module``."""
     sd = extract_state_dict(read_checkpoint(checkpoint, map_location, trust_checkpoint))
-    check_state_dict(module, sd)
+    what = (f"checkpoint {checkpoint}" if isinstance(checkpoint, (str, os.PathLike))
+            else "checkpoint")
+    check_state_dict(module, sd, what)
     module.load_state_dict(sd, strict=True)
     return module
 

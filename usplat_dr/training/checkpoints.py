@@ -115,7 +115,11 @@ def _on_base(path: Path, state: dict, map_location, trust: bool, cache: bool = T
     if found is None:
         raise FileNotFoundError(f"checkpoint {str(path)!r} holds only the weights it adds to "
                                 f"{name}; put {name} (usplat-dr's checkpoints/) beside it")
-    if _file_sha256(found) != base["sha256"]:
+    try:
+        found_sha256 = _file_sha256(found)
+    except ValueError as e:  # a damaged base: named with the add-on the user asked for
+        raise ValueError(f"checkpoint {str(path)!r} (an add-on): its base: {e}") from None
+    if found_sha256 != base["sha256"]:
         raise ValueError(f"checkpoint {str(path)!r} was made on a {name} with sha256 "
                          f"{base['sha256'][:12]}..., and {found} is another file (a newer "
                          f"release?): use the {name} it was made on")

@@ -4,7 +4,7 @@ import os
 
 import torch
 
-from usplat_dr.model import UniqueSplat
+from usplat_dr.model import CheckpointMismatchError, UniqueSplat
 from usplat_dr.training.checkpoints import (
     _built,
     is_mvsplat_checkpoint,
@@ -35,5 +35,9 @@ def load(checkpoint: str | os.PathLike | None = None, device: torch.device | str
     state = read_usplat_checkpoint(path, device, trust)
     if is_mvsplat_checkpoint(state):
         model = UniqueSplat.from_preset("paper", variant="baseline")
-        return model.load_mvsplat(state).to(device).eval()
+        try:
+            model.load_mvsplat(state)
+        except CheckpointMismatchError as e:  # the file the user named, first
+            raise CheckpointMismatchError(f"{path}: {e}") from None
+        return model.to(device).eval()
     return _built(path, state, device)[0]
