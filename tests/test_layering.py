@@ -25,7 +25,7 @@ LAYERS = {
     "render": 3,
     "model": 4, "data": 4,
     "evaluation": 5, "plugins": 5,
-    "training": 6,
+    "training": 6, "viewer": 6,
     "jobs": 7,
     "cli": 8, "__main__": 9,
 }

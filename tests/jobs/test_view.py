@@ -29,6 +29,8 @@ from usplat_dr.cli import main
 from usplat_dr.data.user_views import context_views, read_cameras
 from usplat_dr.jobs import view
 from usplat_dr.model.ply import write_ply
+from usplat_dr.viewer import scene as viewer_scene
+from usplat_dr.viewer import server as viewer_server
 
 
 def parse(*argv: str) -> argparse.Namespace:
@@ -88,7 +90,7 @@ def test_a_camera_looking_at_a_point_sees_it_at_the_image_centre(seed):
     # own conversion is not used to make the input)
     x, y, z, w = Rotation.from_matrix(truth[:3, :3]).as_quat()
     fov, aspect = math.radians(rng.uniform(30, 90)), rng.uniform(0.5, 2.0)
-    c2w, k = view.camera_from_viser([w, x, y, z], position, fov, aspect)
+    c2w, k = viewer_scene.camera_from_viser([w, x, y, z], position, fov, aspect)
     # 1e-9: float64 arithmetic on numbers of order 10
     np.testing.assert_allclose(c2w, truth, atol=1e-9)
     np.testing.assert_allclose(project(c2w, k, target), [0.5, 0.5], atol=1e-9)
@@ -100,7 +102,7 @@ def test_a_camera_looking_at_a_point_sees_it_at_the_image_centre(seed):
     np.testing.assert_allclose(project(c2w, k, top), [0.5, 0.0], atol=1e-9)
     edge = target + right * d * math.tan(fov / 2) * aspect
     np.testing.assert_allclose(project(c2w, k, edge), [1.0, 0.5], atol=1e-9)
-    assert view.fov_from_intrinsics(k) == pytest.approx((fov, aspect), abs=1e-12)
+    assert viewer_scene.fov_from_intrinsics(k) == pytest.approx((fov, aspect), abs=1e-12)
 
 
 def test_c2w_round_trips_through_viser_and_matches_scipy_quaternions():
@@ -109,25 +111,26 @@ def test_c2w_round_trips_through_viser_and_matches_scipy_quaternions():
         c2w = np.eye(4)
         c2w[:3, :3] = rot.as_matrix()
         c2w[:3, 3] = rng.normal(size=3) * 10
-        wxyz, position = view.viser_from_c2w(c2w)
+        wxyz, position = viewer_scene.viser_from_c2w(c2w)
         x, y, z, w = rot.as_quat()
         ref = np.array([w, x, y, z]) * np.sign(w)  # q and -q are one rotation: w >= 0
         np.testing.assert_allclose(wxyz, ref, atol=1e-9)
-        np.testing.assert_allclose(view.c2w_from_viser(wxyz, position), c2w, atol=1e-6)
+        np.testing.assert_allclose(viewer_scene.c2w_from_viser(wxyz, position), c2w, atol=1e-6)
 
 
 def test_viser_reads_our_quaternions_as_the_same_rotation():
     tf = pytest.importorskip("viser.transforms", reason="viser is not installed (the view "
                              "extra)")
     for rot in Rotation.random(20, random_state=2):
-        wxyz, _ = view.viser_from_c2w(np.block([[rot.as_matrix(), np.zeros((3, 1))],
+        wxyz, _ = viewer_scene.viser_from_c2w(np.block([[rot.as_matrix(), np.zeros((3, 1))],
                                                 [np.zeros((1, 3)), np.ones((1, 1))]]))
         np.testing.assert_allclose(tf.SO3(wxyz).as_matrix(), rot.as_matrix(), atol=1e-9)
 
 
 def test_the_docstring_examples_run():
-    result = doctest.testmod(view)
-    assert result.attempted >= 4 and not result.failed
+    for module in (viewer_scene, viewer_server):
+        result = doctest.testmod(module)
+        assert result.attempted >= 1 and not result.failed, module.__name__
 
 
 @pytest.mark.parametrize("fov, aspect, message", [
@@ -135,12 +138,12 @@ def test_the_docstring_examples_run():
     (1.0, 0.0, "aspect > 0"), (1.0, float("nan"), "aspect > 0")])
 def test_bad_fields_of_view_are_errors(fov, aspect, message):
     with pytest.raises(ValueError, match=message):
-        view.intrinsics_from_fov(fov, aspect)
+        viewer_scene.intrinsics_from_fov(fov, aspect)
 
 
 def test_a_zero_quaternion_is_an_error():
     with pytest.raises(ValueError, match="wxyz must be a non-zero"):
-        view.c2w_from_viser([0, 0, 0, 0], [0, 0, 0])
+        viewer_scene.c2w_from_viser([0, 0, 0, 0], [0, 0, 0])
 
 
 # ---- Throttling --------------------------------------------------------------------------
@@ -155,7 +158,7 @@ def test_while_a_render_runs_only_the_newest_camera_waits():
             release.wait(10)  # the first job holds the worker while the others arrive
         done.append((key, job))
 
-    queue = view.LatestOnly(work)
+    queue = viewer_server.LatestOnly(work)
     try:
         queue.submit("a", 0)
         time.sleep(0.2)  # the worker has taken job 0
@@ -205,15 +208,15 @@ def test_a_view_is_what_predict_renders_for_that_camera(scene, truth):
     assert np.array_equal(v.color, pred.color[0].permute(1, 2, 0).numpy())
     assert np.array_equal(v.depth, pred.depth[0].numpy())
 
-    lo, hi = view.depth_range(v)
+    lo, hi = viewer_scene.depth_range(v)
     assert 0 < lo < hi
-    images = {c: view.to_image(v, c, (lo, hi)) for c in view.CHANNELS}
+    images = {c: viewer_scene.to_image(v, c, (lo, hi)) for c in viewer_scene.CHANNELS}
     assert all(im.shape == (64, 64, 3) and im.dtype == np.uint8 for im in images.values())
     np.testing.assert_array_equal(images["opacity"][..., 0],
                                   (np.clip(v.alpha, 0, 1) * 255 + 0.5).astype(np.uint8))
-    assert not images["depth"][v.alpha < view.DEPTH_ALPHA].any()  # black where nothing is
+    assert not images["depth"][v.alpha < viewer_scene.DEPTH_ALPHA].any()  # black where nothing is
     with pytest.raises(ValueError, match="channel must be one of"):
-        view.to_image(v, "normals", (lo, hi))
+        viewer_scene.to_image(v, "normals", (lo, hi))
 
     # the same Gaussians as a 3DGS PLY, drawn without the model, give the same view
     write_ply(truth.root / "g.ply", pred.gaussians[0])
@@ -234,8 +237,9 @@ def test_a_dataset_scene_seen_from_its_context_cameras_shows_their_images(protoc
     assert scene.labels == ["(c) UniqueSplat: study/tiny_full"] and scene.image_shape == (64, 64)
     images = scene.images.permute(0, 2, 3, 1).numpy()
     for i, (c2w, k) in enumerate(scene.frustums()):
-        wxyz, position = view.viser_from_c2w(c2w)
-        c2w_v, k_v = view.camera_from_viser(wxyz, position, *view.fov_from_intrinsics(k))
+        wxyz, position = viewer_scene.viser_from_c2w(c2w)
+        c2w_v, k_v = viewer_scene.camera_from_viser(wxyz, position,
+                                                    *viewer_scene.fov_from_intrinsics(k))
         np.testing.assert_allclose(k_v, k, atol=1e-6)  # the data's intrinsics are float32
         color = scene.render(scene.labels[0], c2w_v, k_v).color
         psnr = [-10 * np.log10(((color - im) ** 2).mean()) for im in images]
