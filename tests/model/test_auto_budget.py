@@ -103,6 +103,16 @@ def test_calibration_round_trips_and_malformed_ones_name_where():
         Calibration.from_dict({"rank_by": "dither", "fits": [[0.3, 1.0]]}, "manifest entry x")
     with pytest.raises(ValueError, match="fits rows must be"):
         Calibration("dither", ((1.5, 0.0, 1.0, 0.0),), 0.9, "dev")
+    # validated as data: a list where a dict belongs, a bounded count of rows, one row per
+    # budget, a quantile and a size that mean something
+    with pytest.raises(ValueError, match="more than the 64 budgets"):
+        Calibration("dither", tuple((k / 200, 0.0, 1.0, 0.0) for k in range(1, 100)), 0.9, "d")
+    with pytest.raises(ValueError, match="two rows for one budget"):
+        Calibration("dither", ((0.3, 0.0, 1.0, 0.0), (0.3, 0.1, 1.0, 0.0)), 0.9, "dev")
+    with pytest.raises(ValueError, match="quantile must be in"):
+        Calibration("dither", ((0.3, 0.0, 1.0, 0.0),), 9.0, "dev")
+    with pytest.raises(ValueError, match="size must be pixels"):
+        Calibration("dither", ((0.3, 0.0, 1.0, 0.0),), 0.9, "dev", 10**9)
 
 
 @pytest.fixture(scope="module")
@@ -242,7 +252,7 @@ def test_predict_chooses_once_and_chunks_render_alike(model, monkeypatch):
 
 def test_shipped_models_carry_their_calibration(model):
     assert model.auto_calibration["dither"].data.startswith("outputs/big/test2000")
-    budget = load("tiny_full_budget")
+    budget = load("study/tiny_full_budget")
     assert set(budget.auto_calibration) == {"dither", "learned"}
 
 
@@ -274,4 +284,13 @@ def test_a_checkpoint_file_of_your_own_carries_its_calibration(tmp_path):
     assert load(mine).auto_calibration == {"dither": cal}
     torch.save({**state, "auto_budget": [{"rank_by": "dither"}]}, mine)
     with pytest.raises(ValueError, match="mine.pt'?: auto_budget: not an automatic count's"):
+        load(mine)
+    torch.save({**state, "auto_budget": [[1, 2]]}, mine)  # a list where a calibration belongs
+    with pytest.raises(ValueError, match="auto_budget: not an automatic count's"):
+        load(mine)
+    torch.save({**state, "auto_budget": [cal.as_dict(), cal.as_dict()]}, mine)
+    with pytest.raises(ValueError, match="two calibrations for one ranking"):
+        load(mine)
+    torch.save({**state, "auto_budget": [cal.as_dict()] * 1000}, mine)
+    with pytest.raises(ValueError, match="more than one per ranking"):
         load(mine)

@@ -141,10 +141,13 @@ def summary_lines(r: DemoResults) -> list[str]:
     margin over copying the nearest context view, the registered verdict's rows and the time
     taken; the sections below hold the detail."""
     b = r.recipe
+    numerics = r.provenance.get("numerics")
+    isa = numerics.get("ATEN_CPU_CAPABILITY") if isinstance(numerics, dict) else None
     lines = ["# usplat-dr demo report", "", "## Summary", "",
              (f"Recipe `{r.recipe_name}`: {b.test_scenes} fresh scenes at {b.size}x{b.size}, "
               f"{r.timings.get('total', sum(r.timings.values())):.0f} s in all "
-              f"({r.provenance.get('cpu', 'this CPU')}, "
+              f"({r.provenance.get('cpu', 'this CPU')}"
+              f"{f', {isa} kernels' if isa else ''}, "
               f"{r.provenance.get('torch_threads', '?')} thread(s))."), "",
              "| model | PSNR, standard split | over copying the nearest view | time per scene |",
              "|---|---|---|---|"]

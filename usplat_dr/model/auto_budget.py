@@ -50,6 +50,10 @@ AUTO_KEEPS = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.7)
 DEFAULT_TOLERANCE_DB = 0.2
 
 
+#: The most budgets one calibration may hold a line for (it measures ``AUTO_KEEPS``).
+MAX_FITS = 64
+
+
 @dataclass(frozen=True)
 class Calibration:
     """The proxy loss mapped to the target's loss, per budget: ``fits`` holds (keep,
@@ -78,11 +82,22 @@ class Calibration:
         if not self.fits:
             raise ValueError("Calibration.fits must hold at least one (keep, intercept, slope, "
                              "margin) row")
+        if len(self.fits) > MAX_FITS:
+            raise ValueError(f"Calibration.fits holds {len(self.fits)} rows, more than the "
+                             f"{MAX_FITS} budgets a calibration measures")
         for row in self.fits:
             if len(row) != 4 or not all(isinstance(x, numbers.Real) and math.isfinite(x)
                                         for x in row) or not 0 < row[0] < 1:
                 raise ValueError(f"Calibration.fits rows must be (keep in (0, 1), intercept, "
                                  f"slope, margin), finite numbers, got {row!r}")
+        keeps = [row[0] for row in self.fits]
+        if len(set(keeps)) != len(keeps):
+            raise ValueError(f"Calibration.fits has two rows for one budget: {keeps}")
+        if not (isinstance(self.quantile, numbers.Real) and 0 < self.quantile < 1):
+            raise ValueError(f"Calibration.quantile must be in (0, 1), got {self.quantile!r}")
+        if self.size is not None and not (isinstance(self.size, int)
+                                          and 1 <= self.size <= 65_536):
+            raise ValueError(f"Calibration.size must be pixels in 1..65,536, got {self.size!r}")
 
     def predicted(self, keep: float, proxy_db: float) -> float | None:
         """The target's loss predicted at ``keep`` from the proxy loss; ``None`` where this
@@ -106,7 +121,7 @@ class Calibration:
                                                         for row in d["fits"]),
                                float(d["quantile"]), str(d.get("data", "")),
                                None if size is None else int(size))
-        except (KeyError, TypeError, ValueError) as e:
+        except (AttributeError, KeyError, TypeError, ValueError, OverflowError) as e:
             raise ValueError(f"{where}: not an automatic count's calibration ({{'rank_by', "
                              f"'quantile', 'data', 'fits': [[keep, intercept, slope, margin], "
                              f"...]}}): {e}") from e

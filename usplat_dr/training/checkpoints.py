@@ -20,6 +20,7 @@ from usplat_dr.io import load_torch_file, torch_save
 from usplat_dr.io.user_files import sha256
 from usplat_dr.model import UniqueSplat, UniqueSplatCfg
 from usplat_dr.model.auto_budget import Calibration
+from usplat_dr.model.budget import RANKINGS
 from usplat_dr.model.checkpoint import check_state_dict
 from usplat_dr.training.registry import (  # noqa: F401  (the loader's names, here too)
     CHECKPOINTS,
@@ -316,8 +317,18 @@ def _auto_calibration(path: Path, state: dict) -> dict[str, Calibration]:
     if not isinstance(found, list):
         raise ValueError(f"checkpoint {str(path)!r}: its auto_budget must be a list of "
                          f"calibrations, got {type(found).__name__}")
-    calibrations = [Calibration.from_dict(d, f"checkpoint {str(path)!r}: auto_budget")
-                    for d in found]
+    if len(found) > len(RANKINGS):
+        raise ValueError(f"checkpoint {str(path)!r}: its auto_budget holds {len(found)} "
+                         f"calibrations, more than one per ranking ({len(RANKINGS)})")
+    where = f"checkpoint {str(path)!r}: auto_budget"
+    if not all(isinstance(d, dict) for d in found):
+        raise ValueError(f"{where}: not an automatic count's calibration (each entry a dict: "
+                         f"rank_by, quantile, data, fits)")
+    calibrations = [Calibration.from_dict(d, where) for d in found]
+    ranks = [c.rank_by for c in calibrations]
+    if len(set(ranks)) != len(ranks):
+        raise ValueError(f"checkpoint {str(path)!r}: its auto_budget has two calibrations "
+                         f"for one ranking ({ranks}): keep one per ranking")
     return {c.rank_by: c for c in calibrations}
 
 
