@@ -494,3 +494,25 @@ def test_a_websocket_from_another_page_is_refused(truth):
         assert viewer.refused == ["http://evil.example"]
     finally:
         viewer.stop()
+
+
+def test_a_taken_port_moves_on_and_an_address_not_here_is_one_line(caplog):
+    import logging
+    import socket
+
+    from usplat_dr.viewer.server import listening_port
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with caplog.at_level(logging.WARNING, logger="usplat_dr.viewer.server"):
+            chosen = listening_port("127.0.0.1", port)
+        assert chosen != port and chosen > port
+        assert f"port {port} is taken: serving on {chosen}" in caplog.text
+    # 192.0.2.1 (TEST-NET-1) is no address of this machine: refused at once, naming it
+    with pytest.raises(ValueError, match=r"--host 192.0.2.1: cannot listen there"):
+        listening_port("192.0.2.1", 8080)
+    with pytest.raises(ValueError, match="is not an address"):
+        listening_port("no such host.invalid", 8080)
+    assert listening_port("127.0.0.1", 0) == 0

@@ -36,7 +36,7 @@ from usplat_dr.model.uniquesplat import VARIANTS
 from usplat_dr.training.loader import load
 from usplat_dr.training.registry import canonical_name, shipped_models
 from usplat_dr.viewer.scene import PLY_IMAGE_SHAPE, VIEWER_HINT, ModelScene, PlyScene
-from usplat_dr.viewer.server import Viewer
+from usplat_dr.viewer.server import Viewer, listening_port
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,7 @@ def start(args: argparse.Namespace) -> Viewer:
         import viser  # noqa: F401  (before the seconds of loading a model)
     except ImportError:
         raise ValueError(VIEWER_HINT) from None
+    listening_port(args.host, args.port)  # an address not here: one line before a model loads
     return Viewer(scene_from_args(args), args.host, args.port)
 
 

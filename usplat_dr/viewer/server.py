@@ -6,8 +6,10 @@ to its own origin.
 """
 
 import asyncio
+import errno
 import ipaddress
 import logging
+import socket
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -105,6 +107,44 @@ class Job:
                 and np.allclose(self.intrinsics, other.intrinsics, rtol=0, atol=1e-9))
 
 
+#: How many ports after a taken ``--port`` the viewer tries.
+PORT_TRIES = 100
+
+
+def listening_port(host: str, port: int) -> int:
+    """The port the viewer will serve on: ``port`` (0: any free one) or, where it is taken,
+    the next free one of the ``PORT_TRIES`` after it, said; a ``ValueError`` naming the host
+    where this machine has no such address, or the ports where none is free.
+
+    Examples:
+        >>> listening_port("127.0.0.1", 0)
+        0
+    """
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    if port == 0:
+        candidates = [0]
+    else:
+        candidates = range(port, min(port + PORT_TRIES, 65535) + 1)
+    for candidate in candidates:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind((host, candidate))
+            except socket.gaierror as e:
+                raise ValueError(f"--host {host!r} is not an address ({e.strerror}): give "
+                                 f"127.0.0.1, 0.0.0.0 or an address of this machine") from None
+            except OSError as e:
+                if e.errno == errno.EADDRINUSE:
+                    continue
+                raise ValueError(f"--host {host}: cannot listen there ({e.strerror}): give "
+                                 f"127.0.0.1, 0.0.0.0 or an address of this machine") from None
+        if candidate != port:
+            log.warning("port %d is taken: serving on %d (--port to choose)", port, candidate)
+        return candidate
+    raise ValueError(f"--port {port}: it and the {len(candidates) - 1} ports after it are "
+                     f"taken: give another --port, or 0 for any free one")
+
+
 class Viewer:
     """A running viewer: the viser server on ``host``:``port`` (0: any free port) showing
     ``scene``. ``history[client_id]`` lists the jobs rendered for each browser, in order, and
@@ -120,8 +160,9 @@ class Viewer:
         start_c2w, start_k = scene.start()
         self.start_view = scene.render(scene.labels[0], start_c2w, start_k)
         self.depth_range = depth_range(self.start_view)
-        self.server = viser.ViserServer(host=host, port=port, label="usplat view",
-                                        verbose=False)
+        port = listening_port(host, port)  # before viser: it would wait on an address it
+        self.server = viser.ViserServer(host=host, port=port, label="usplat view",  # cannot
+                                        verbose=False)  # bind, or count past port 65535
         self.history: dict[int, list[Job]] = {}
         self.shown: dict[int, np.ndarray] = {}
         self.state: dict[int, dict] = {}
