@@ -96,11 +96,12 @@ def check_complete(path: Path) -> None:
 
 
 def kill_everywhere(argv, out: Path, commits: int, prepare=lambda: None,
-                    whole_sets: dict | None = None) -> list[dict]:
+                    whole_sets: dict | None = None, check=lambda left: None) -> list[dict]:
     """Kill ``usplat ARGV`` (writing ``out``) before each of its ``commits`` (a clean run's
     count), check what is left, rerun it unkilled; each rerun's files ({path: bytes}).
     ``prepare`` runs before each try; ``whole_sets``: {folder prefix: [its allowed contents
-    ({path: bytes})]} for folders that must never hold a mixture."""
+    ({path: bytes})]} for folders that must never hold a mixture; ``check``: more checks of
+    what a kill left ({relative path: Path})."""
     reruns = []
     for n in range(1, commits + 1):
         prepare()
@@ -113,6 +114,7 @@ def kill_everywhere(argv, out: Path, commits: int, prepare=lambda: None,
             # a folder written whole: one of these, or absent (between the swap's renames)
             now = {k: p.read_bytes() for k, p in left.items() if k.startswith(folder)}
             assert not now or now in versions, (n, folder, sorted(now))
+        check(left)
         COUNTS["kills"] += 1
         COUNTS["files left, each complete"] += len(left)
         assert run(0, argv)[0] == 0, n
@@ -171,8 +173,25 @@ def test_a_killed_eval_leaves_complete_files_and_a_rerun_scores_the_same(scene, 
     clean = without_timings(files_of(tmp_path / "clean"))
     assert {"per_scene.csv", "summary.json"} <= set(clean)
     assert any(k.startswith("renders/standard/") for k in clean)
+    # an earlier eval of another model in --out: a kill must never leave its summary.json
+    # beside the new run's per_scene.csv or renders (a summary always describes the files
+    # beside it), and a finished rerun holds nothing of it
+    earlier_eval = tmp_path / "earlier"
+    other = ["eval", "--checkpoint", "study/tiny_full", "--data", str(data)]
+    assert run(0, [*other, "--out", str(earlier_eval)])[0] == 0
+    earlier = files_of(earlier_eval)
     out = tmp_path / "eval"
-    reruns = kill_everywhere([*argv, "--out", str(out)], out, commits)
+
+    def over_the_earlier_eval():
+        shutil.rmtree(out, ignore_errors=True)
+        shutil.copytree(earlier_eval, out)
+
+    def one_run(left):
+        if "summary.json" in left:  # then every result file beside it is the earlier run's
+            assert all(p.read_bytes() == earlier[k] for k, p in left.items()), sorted(left)
+
+    reruns = kill_everywhere([*argv, "--out", str(out)], out, commits, over_the_earlier_eval,
+                             check=one_run)
     assert all(without_timings(files) == clean for files in reruns)
 
 

@@ -16,6 +16,7 @@ import csv
 import json
 import logging
 import resource
+import shutil
 import statistics
 import time
 from pathlib import Path
@@ -95,6 +96,27 @@ def peak_memory_gib(device: torch.device) -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
+#: What an evaluation writes in its folder: ``summary.json`` last (a folder with it holds one
+#: complete run), ``per_scene.csv`` before it, render and allocation images before those.
+RESULT_FILES = ("summary.json", "per_scene.csv")
+RESULT_FOLDERS = ("renders", "allocation")
+
+
+def clear_earlier_results(out: Path) -> None:
+    """An earlier evaluation's results in ``out`` removed before a new one starts (its
+    ``summary.json`` first): a run killed midway then leaves no earlier ``summary.json`` beside
+    its own ``per_scene.csv`` or renders, so a folder with a ``summary.json`` always holds one
+    run's files. Only a folder holding an evaluation's files is cleared, and only those."""
+    if not any((out / name).is_file() for name in RESULT_FILES):
+        return
+    for name in RESULT_FILES:
+        (out / name).unlink(missing_ok=True)
+    for name in RESULT_FOLDERS:
+        folder = out / name
+        if folder.is_dir() and not folder.is_symlink():
+            shutil.rmtree(folder)
+
+
 @torch.no_grad()
 def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
              lpips=None, device: torch.device | str = "cpu", images_per_split: int = 4,
@@ -126,6 +148,7 @@ def evaluate(model, dataset: dict, indices: dict[str, str], out: str | Path,
     device = torch.device(device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    clear_earlier_results(out)
     model = model.to(device).eval()
     keep = make_budget(budget, rank_by)  # checked before any scene is read
     # The view-specificity meter for a (c), on the exact model (no budget, no pruning)
