@@ -172,3 +172,27 @@ def test_one_image_named_twice_is_refused_naming_it(tmp_path):
 def test_the_bounds_are_the_documented_ones():
     assert importers.MAX_CAMERAS == 100_000 and importers.MAX_IMAGE_SIDE == 65_536
     assert importers.MAX_FOCAL == 1e6
+
+
+def test_a_ply_claiming_a_gibibyte_is_read_to_its_vertices_end(tmp_path):
+    # a valid 3DGS PLY of 50 Gaussians followed by a sparse gibibyte: only the header and
+    # the 50 vertices it declares are read, under a limit a whole read would break
+    from tests.model.test_ply import random_gaussians
+    from usplat_dr.model.ply import write_ply
+
+    path = write_ply(tmp_path / "g.ply", random_gaussians(50))
+    size = path.stat().st_size
+    with open(path, "r+b") as f:
+        f.truncate(GIB)
+    proc = under_limit(f"""
+        from usplat_dr.model.ply import read_ply
+        g = read_ply({str(path)!r})
+        print(len(g["means"]), g["sh_degree"])
+        """, limit=GIB + GIB // 2)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["50", "3"]
+    with open(path, "r+b") as f:  # and cut short, it says how much is missing
+        f.truncate(size - 10)
+    from usplat_dr.model.ply import read_ply
+    with pytest.raises(ValueError, match="truncated: the header declares 50 vertices"):
+        read_ply(path)

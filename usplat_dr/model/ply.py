@@ -24,7 +24,7 @@ from torch import Tensor
 
 from usplat_dr.geometry.quaternions import matrix_to_quat_wxyz, quat_xyzw_to_matrix
 from usplat_dr.io import atomic_open
-from usplat_dr.io.user_files import read_bytes
+from usplat_dr.io.user_files import regular_file
 from usplat_dr.model.sh_rotation import fibonacci_sphere
 from usplat_dr.model.types import Gaussians
 from usplat_dr.render.sh import sh_basis
@@ -140,6 +140,8 @@ def _vertex_layout(path, header: list[str]) -> tuple[np.dtype, int, int]:
 
 #: Bytes a PLY may hold: 16M Gaussians of SH degree 3 (62 float32 each) are about 4 GB.
 MAX_PLY_BYTES = 4 * 2**30
+#: Bytes a PLY header may take (a 3DGS header is about 2 kB).
+MAX_PLY_HEADER = 2**20
 
 
 def read_ply(path: str | os.PathLike) -> dict:
@@ -152,16 +154,29 @@ def read_ply(path: str | os.PathLike) -> dict:
     any scalar type) are ignored; every property is read as float32. Anything else (not a
     binary 3DGS PLY, truncated, a Gaussian with NaN or infinite values) is a ``ValueError``
     naming the file."""
-    raw = read_bytes(path, "PLY file", MAX_PLY_BYTES)  # a FIFO or /dev/zero: refused
-    marker = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply") or marker < 0:
-        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
-    end = marker + len(b"end_header\n")
-    try:
-        header = raw[:end].decode("ascii").splitlines()
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: the PLY header is not ASCII") from None
-    dtype, count, offset = _vertex_layout(path, header)
+    # a FIFO or /dev/zero: refused; then the header, then only the bytes it declares (a
+    # sparse file claiming gigabytes is read to its vertices' end, never whole)
+    path = regular_file(path, "PLY file", MAX_PLY_BYTES)
+    with open(path, "rb") as f:
+        head = f.read(MAX_PLY_HEADER)
+        marker = head.find(b"end_header\n")
+        if not head.startswith(b"ply") or marker < 0:
+            raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in "
+                             f"its first {MAX_PLY_HEADER:,} bytes)")
+        end = marker + len(b"end_header\n")
+        try:
+            header = head[:end].decode("ascii").splitlines()
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: the PLY header is not ASCII") from None
+        dtype, count, offset = _vertex_layout(path, header)
+        needed = end + offset + count * dtype.itemsize
+        size = os.fstat(f.fileno()).st_size
+        if needed > size:
+            raise ValueError(f"{path}: truncated: the header declares {count} vertices "
+                             f"({count * dtype.itemsize} bytes), the file holds "
+                             f"{max(size - end - offset, 0)}")
+        f.seek(0)
+        raw = f.read(needed)
     names = dtype.names
     missing = [k for k in _REQUIRED if k not in names]
     if missing:
