@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
 import urllib.request
 
 import numpy as np
@@ -516,3 +517,55 @@ def test_a_taken_port_moves_on_and_an_address_not_here_is_one_line(caplog):
     with pytest.raises(ValueError, match="is not an address"):
         listening_port("no such host.invalid", 8080)
     assert listening_port("127.0.0.1", 0) == 0
+
+
+@pytest.mark.slow
+def test_view_ply_starts_under_a_memory_limit_and_serves_only_its_own_files(tmp_path):
+    # containers and shared nodes cap the address space: `usplat view --ply` must start
+    # under 4 GiB (it once asked for its 4 GiB PLY bound at once), listen on 127.0.0.1 only,
+    # and serve no file outside its client by any spelling of a path
+    import socket
+
+    from tests.model.test_ply import random_gaussians
+    from usplat_dr.model.ply import write_ply
+
+    pytest.importorskip("viser", reason="usplat view needs the view extra")
+    ply = write_ply(tmp_path / "g.ply", random_gaussians(50))
+    (tmp_path / "secret.txt").write_text("not for the page")
+    limit = 4 * 2**30
+    capped = (f"import resource, sys; resource.setrlimit(resource.RLIMIT_AS, ({limit}, {limit}))"
+              f"; from usplat_dr.cli import main; sys.exit(main(sys.argv[1:]))")
+
+    with socket.socket() as s:  # a free port for it
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-c", capped, "view", "--ply", str(ply),
+                             "--image-shape", "32", "32", "--port", str(port)],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 120
+        line = ""
+        while "open http" not in line and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            assert line or proc.poll() is None, "the viewer ended before serving"
+        assert f"open http://127.0.0.1:{port}" in line, line
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=20).read()
+        assert b"<html" in page.lower()
+        for spelling in ("../secret.txt", "%2e%2e/secret.txt", "..%2fsecret.txt",
+                         str(tmp_path / "secret.txt"), "%2fetc%2fpasswd"):
+            try:
+                body = urllib.request.urlopen(f"http://127.0.0.1:{port}/{spelling}",
+                                              timeout=20).read()
+            except urllib.error.HTTPError:
+                continue  # refused
+            assert b"not for the page" not in body and b"root:" not in body, spelling
+        # 127.0.0.1 only: the machine's other addresses do not answer
+        other = socket.gethostbyname(socket.gethostname())
+        if other != "127.0.0.1" and not other.startswith("127."):
+            with socket.socket() as s, pytest.raises(OSError):
+                s.settimeout(5)
+                s.connect((other, port))
+    finally:
+        proc.kill()
+        proc.wait()
