@@ -731,7 +731,8 @@ def test_colmap_quaternions_that_are_no_rotation_end_in_one_line(tmp_path, capsy
 
 @pytest.mark.parametrize("variable, value", [
     ("USPLAT_THREADS", "0"), ("USPLAT_THREADS", "abc"), ("USPLAT_THREADS", "99999"),
-    ("USPLAT_THREADS", "-3"), ("USPLAT_OMP_SPIN", "abc"), ("USPLAT_OMP_SPIN", "-1")])
+    ("USPLAT_THREADS", "-3"), ("USPLAT_OMP_SPIN", "abc"), ("USPLAT_OMP_SPIN", "-1"),
+    ("USPLAT_PORTABLE", "maybe")])
 def test_environment_variables_set_wrong(tmp_path, variable, value):
     import sys
 
@@ -754,6 +755,8 @@ def test_environment_variables_set_wrong(tmp_path, variable, value):
         assert cmd.returncode == 2 and len(lines) == 1 and variable in lines[0], cmd.stderr
     else:
         assert cmd.returncode == 0, cmd.stderr
+    if variable == "USPLAT_PORTABLE":  # said, with the values it takes
+        assert "USPLAT_PORTABLE='maybe' is not one of 1/true/yes/on" in cmd.stderr, cmd.stderr
     COUNTS[(SKIPS, "error naming the variable" if cmd.returncode else "warning")] += 1
 
 

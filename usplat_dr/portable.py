@@ -37,8 +37,22 @@ _pinned: tuple | None = None
 _host: tuple | None = None  # Dr.Jit's target before the first pin (``unpin_drjit``)
 
 
+#: ``USPLAT_PORTABLE``'s values: off, and on.
+OFF, ON = ("", "0", "false", "no", "off"), ("1", "true", "yes", "on")
+_said: set[str] = set()  # values already warned about
+
+
 def enabled() -> bool:
-    return os.environ.get(ENV_VAR, "0") not in ("", "0", "false", "no")
+    """Whether portable numerics are on (``USPLAT_PORTABLE``); a value that is neither
+    (``OFF``, ``ON``) is said once, naming the variable and its values, and counts as on
+    (the numbers stay reproducible)."""
+    value = os.environ.get(ENV_VAR, "0").strip().lower()
+    if value not in OFF + ON and value not in _said:
+        _said.add(value)
+        logging.getLogger(__name__).warning(
+            "%s=%r is not one of 1/true/yes/on or 0/false/no/off: treated as 1 (portable "
+            "numerics on)", ENV_VAR, os.environ.get(ENV_VAR))
+    return value not in OFF
 
 
 def enable(torch_pins: bool = True) -> None:
