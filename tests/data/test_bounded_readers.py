@@ -196,3 +196,16 @@ def test_a_ply_claiming_a_gibibyte_is_read_to_its_vertices_end(tmp_path):
     from usplat_dr.model.ply import read_ply
     with pytest.raises(ValueError, match="truncated: the header declares 50 vertices"):
         read_ply(path)
+
+
+def test_a_camera_path_may_repeat_a_placeholder_image(tmp_path):
+    # a --path file's frames name no image that is read: the same placeholder is fine there,
+    # and the pixel size may be written as text, as a JSON writer may
+    from usplat_dr.data.user_views import read_cameras
+
+    folder = transforms(tmp_path / "path", [frame("t"), frame("t", 1.0), frame("t", 2.0)],
+                        w="64", h="64")
+    scene = read_cameras(folder / "transforms.json", what="--path")
+    assert len(scene.extrinsics) == 3
+    with pytest.raises(ValueError, match="twice"):
+        read_cameras(folder / "transforms.json")

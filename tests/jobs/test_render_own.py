@@ -98,11 +98,14 @@ def test_a_path_is_predicted_a_few_targets_at_a_time_and_bounded(user_scene, tmp
     assert len(frames[2]) == len(user_scene.names)
     # each target is predicted on its own (its own Delta W in (c)): chunks change nothing but
     # the float rounding of convolutions batched over 2 or 6 targets (oneDNN may pick other
-    # kernels for other batch sizes), which flips single 8-bit levels: measured 1 pixel of
-    # 12,288 in one run; allowed: 1 level, on at most 1% of the pixels of a frame
+    # kernels for other batch sizes, and by what the process ran before: after an in-process
+    # PLY export, 2026-12-04), which flips single 8-bit levels, most in the depth half, whose
+    # colour map steepens them: measured 1 pixel of 12,288 by 1 level in one run, by 2 levels
+    # in another; allowed: 3 levels, on at most 1% of the pixels of a frame (mixing targets
+    # up would move whole regions by tens of levels)
     for a, b in zip(frames[2], frames[8]):
         diff = np.abs(a.astype(int) - b)
-        assert diff.max() <= 1 and (diff > 0).mean() <= 0.01
+        assert diff.max() <= 3 and (diff > 0).mean() <= 0.01
     monkeypatch.setattr(render_job, "MAX_PATH_CAMERAS", 5)
     capsys.readouterr()
     assert main([*args, "--out", str(tmp_path / "long")]) == 2

@@ -72,6 +72,14 @@ def test_names_resolve_study_names_too_and_old_names_say_their_new_one(root, cap
         resolve_checkpoint("nothing", root)
 
 
+def test_a_manifest_whose_names_choose_two_models_is_refused(root):
+    entries = json.loads((root / "manifest.json").read_text())
+    entries[1]["old_names"] = ["c-64"]  # c-128 once called c-64: two models for one name
+    (root / "manifest.json").write_text(json.dumps(entries))
+    with pytest.raises(ValueError, match="a name .or old name. given twice"):
+        shipped_models(root)
+
+
 def test_a_shipped_name_wins_over_a_file_of_that_name_here(root, tmp_path, monkeypatch,
                                                           caplog):
     # a file ./c-64 in the current folder (garbage or another model) is not what the name

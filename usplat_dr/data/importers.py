@@ -510,12 +510,14 @@ MAX_JSON_BYTES = 256 * 2**20
 
 
 def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False,
-                    name: str = "transforms.json") -> ImportedScene:
+                    name: str = "transforms.json", distinct_images: bool = True
+                    ) -> ImportedScene:
     """Read ``<folder>/<name>`` (nerfstudio's format; ``transforms.json`` by default, any
     file in that layout, a camera path say, otherwise): intrinsics ``fl_x``, ``fl_y``,
     ``cx``, ``cy``, ``w``, ``h`` at the top level or per frame (a frame's own win), and per
     frame ``file_path`` (relative to ``folder``) and ``transform_matrix`` (camera-to-world,
-    OpenGL axes)."""
+    OpenGL axes). ``distinct_images``: one image per frame (a camera path's frames, whose
+    images are never read, may share one)."""
     folder = Path(folder)
     path = folder / name
     if not path.is_file():
@@ -572,14 +574,15 @@ def read_nerfstudio(folder: str | os.PathLike, ignore_distortion: bool = False,
             if m.shape != (4, 4):
                 raise ValueError(f"transform_matrix must be 4x4 (or 3x4), got {m.shape}")
             cx, cy = float(get("cx", w / 2)), float(get("cy", h / 2))
-            check_camera(get("w"), get("h"), fx, fy, cx, cy, "the camera")
+            check_camera(w, h, fx, fy, cx, cy, "the camera")
             c2w.append(rigid(m, "transform_matrix") @ OPENGL_TO_OPENCV)
             intr.append(normalised_intrinsics(fx, fy, cx, cy, w, h))
         except (TypeError, ValueError, OverflowError) as e:
             raise ValueError(f"{where}: {e}") from None
         shapes.append((h, w))
         paths.append(inside(folder, frame["file_path"], f"{where}: file_path"))
-    refuse_duplicates(paths, path, "frames")
+    if distinct_images:
+        refuse_duplicates(paths, path, "frames")
     return ImportedScene(paths, np.stack(c2w), np.stack(intr), np.array(shapes), None, folder)
 
 

@@ -47,12 +47,13 @@ def read_cameras(path: str | os.PathLike, ignore_distortion: bool = False,
     argument in errors."""
     path = Path(path)
     if path.is_file() and path.suffix == ".json":
-        return read_nerfstudio(path.parent, ignore_distortion, name=path.name)
+        return read_nerfstudio(path.parent, ignore_distortion, name=path.name,
+                               distinct_images=what != "--path")
     if path.is_file():
         raise ValueError(f"{what} {path}: a camera file is a nerfstudio-style .json "
                          "(transforms.json) or a COLMAP model folder")
     if path.is_dir() and (path / "transforms.json").is_file():
-        return read_nerfstudio(path, ignore_distortion)
+        return read_nerfstudio(path, ignore_distortion, distinct_images=what != "--path")
     if path.is_dir():
         return read_colmap(path, ignore_distortion=ignore_distortion)
     raise FileNotFoundError(f"{what} {path} does not exist: pass a COLMAP model folder "

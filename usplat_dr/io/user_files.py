@@ -62,10 +62,10 @@ def read_bytes(path: str | os.PathLike, what: str, max_bytes: int = MAX_DATA_BYT
     path = regular_file(path, what, max_bytes)
     blocks, total = [], 0
     with open(path, "rb") as f:
-        # in blocks of what the file holds (at most READ_BLOCK): ``f.read(max_bytes)`` would
+        # in blocks of what the file holds (64 KiB to READ_BLOCK): ``f.read(max_bytes)`` would
         # ask for the maximum at once, which a memory limit refuses for a 10 kB file
         expected = os.fstat(f.fileno()).st_size
-        while block := f.read(max(1, min(expected - total + 1, READ_BLOCK))):
+        while block := f.read(max(1 << 16, min(expected - total + 1, READ_BLOCK))):
             total += len(block)
             if total > max_bytes:
                 raise ValueError(f"{what} {path} grew past {max_bytes:,} bytes while being "

@@ -316,8 +316,10 @@ def fit_checkpoint(args: argparse.Namespace) -> str:
     else:
         data = getattr(args, "data", None)
         shape = stored_image_shape(data) if data is not None else None
-        if shape is None:
-            shape = (64, 64) if data is not None else None
+        if shape is None and data is not None:
+            log.info("--data %s: its images' stored size cannot be read; choosing for 64x64",
+                     data)
+            shape = (64, 64)
     args.checkpoint, line = default_checkpoint(shape)
     log.info("%s", line)
     return args.checkpoint

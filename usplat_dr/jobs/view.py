@@ -139,7 +139,8 @@ def start(args: argparse.Namespace) -> Viewer:
         import viser  # noqa: F401  (before the seconds of loading a model)
     except ImportError:
         raise ValueError(VIEWER_HINT) from None
-    listening_port(args.host, args.port)  # an address not here: one line before a model loads
+    # an address not here: one line before a model loads; a taken port said once
+    args.port = listening_port(args.host, args.port)
     return Viewer(scene_from_args(args), args.host, args.port)
 
 

@@ -64,7 +64,8 @@ _SHA256: dict[tuple, str] = {}
 
 def _stat_key(path: Path, *more) -> tuple:
     stat = path.stat()
-    return (str(path.resolve()), stat.st_size, stat.st_mtime_ns, *more)
+    return (str(path.resolve()), stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns,
+            *more)
 
 
 def _load(path: Path, map_location, trust: bool, cache: bool = True) -> dict:
@@ -78,7 +79,9 @@ def _load(path: Path, map_location, trust: bool, cache: bool = True) -> dict:
     if not isinstance(state, dict):
         raise ValueError(f"checkpoint {str(path)!r} holds a {type(state).__name__}, not a "
                          f"usplat checkpoint (a dict with 'model' and 'model_config')")
-    if cache:
+    # kept: weights files read on the CPU (the shipped ones are megabytes); never a training
+    # state with its optimiser, nor a copy on a GPU beside the model's own weights
+    if cache and str(map_location) == "cpu" and "optimizer" not in state:
         _READ[key] = state
         while len(_READ) > READ_CACHE:
             _READ.pop(next(iter(_READ)))

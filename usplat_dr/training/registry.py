@@ -95,6 +95,12 @@ def shipped_models(root: Path = CHECKPOINTS) -> dict[str, ShippedModel]:
     """``{name: ShippedModel}`` of the manifest, in its order (user models first)."""
     models = [_model(root, e) for e in manifest_entries(root)]
     models.sort(key=lambda m: KINDS.index(m.kind))
+    names = [m.name for m in models] + [o for m in models for o in m.old_names]
+    users = [(m.variant, m.size) for m in models if m.kind == "user"]
+    if len(set(names)) != len(names) or len(set(users)) != len(users):
+        raise ValueError(f"{root / 'manifest.json'}: a name (or old name) given twice, or two "
+                         f"user models of one variant and size: each name must choose one "
+                         f"model")
     return {m.name: m for m in models}
 
 
