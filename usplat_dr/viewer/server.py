@@ -126,7 +126,12 @@ def listening_port(host: str, port: int) -> int:
     else:
         candidates = range(port, min(port + PORT_TRIES, 65535) + 1)
     for candidate in candidates:
-        with socket.socket(family, socket.SOCK_STREAM) as s:
+        try:
+            s = socket.socket(family, socket.SOCK_STREAM)
+        except OSError as e:  # an IPv6 address on a machine without IPv6
+            raise ValueError(f"--host {host}: this machine cannot listen on such an address "
+                             f"({e.strerror}): give 127.0.0.1 or 0.0.0.0") from None
+        with s:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 s.bind((host, candidate))
