@@ -262,15 +262,20 @@ def out_file(text: str) -> str:
 DATASETS = ["synth", "re10k", "acid", "dtu"]
 
 
-def add_example_arguments(p: argparse.ArgumentParser, data_required: bool = True) -> None:
-    """The arguments naming a model and one evaluation example (``render``, ``export-ply``)."""
-    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
+def add_scene_arguments(p, data_required: bool = False) -> None:
+    """``--data``, ``--dataset``, ``--index`` and ``--scene``: one evaluation example of a
+    dataset (``p``: a parser or an argument group)."""
     p.add_argument("--data", required=data_required, help="dataset root (chunk format)")
-    p.add_argument("--dataset", default="synth", choices=DATASETS,
-                   help=DATASET_HELP)
+    p.add_argument("--dataset", default="synth", choices=DATASETS, help=DATASET_HELP)
     p.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
                    "standard split)")
     p.add_argument("--scene", help="scene key (default: the first of the index)")
+
+
+def add_example_arguments(p: argparse.ArgumentParser, data_required: bool = True) -> None:
+    """The arguments naming a model and one evaluation example (``render``, ``export-ply``)."""
+    p.add_argument("--checkpoint", help=CHECKPOINT_HELP)
+    add_scene_arguments(p, data_required)
     add_image_shape_argument(p)
     add_trust_argument(p)
     add_budget_arguments(p)

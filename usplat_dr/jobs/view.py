@@ -20,11 +20,10 @@ import torch
 from usplat_dr.data.types import model_inputs
 from usplat_dr.jobs.arguments import (
     CHECKPOINT_HELP,
-    DATASET_HELP,
-    DATASETS,
     DEVICE_HELP,
     add_image_shape_argument,
     add_own_views_arguments,
+    add_scene_arguments,
     add_trust_argument,
     check_own_views,
     fit_checkpoint,
@@ -48,13 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a second model to switch to in the page, e.g. baseline-64 beside "
                    "full-64; 'none' for one model (default: with a shipped (c), the shipped "
                    "(a) trained nearest its size, else none)")
-    data = p.add_argument_group("context views from a dataset")
-    data.add_argument("--data", help="dataset root (chunk format)")
-    data.add_argument("--dataset", default="synth", choices=DATASETS,
-                      help=DATASET_HELP)
-    data.add_argument("--index", help="evaluation index JSON (default: the synthetic set's "
-                      "standard split)")
-    data.add_argument("--scene", help="scene key (default: the first of the index)")
+    add_scene_arguments(p.add_argument_group("context views from a dataset"))
     add_own_views_arguments(p)
     p.add_argument("--ply", help="a 3DGS PLY to look at instead of a model (rendered by our "
                    "rasteriser at --image-shape, default 256 256)")
